@@ -1,0 +1,257 @@
+"""Tests for torchmocap.filters.resampling."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchmocap.filters.resampling import (
+    RESAMPLERS,
+    MultinomialResampler,
+    ResidualResampler,
+    StratifiedResampler,
+    SystematicResampler,
+    counts_to_indices,
+    effective_sample_size,
+    ess_fraction,
+    gather_particles,
+    get_resampler,
+    multinomial_resample,
+    normalize_log_weights,
+    offspring_counts,
+    residual_resample,
+    stratified_resample,
+    systematic_resample,
+)
+
+FUNCS = {
+    "multinomial": multinomial_resample,
+    "systematic": systematic_resample,
+    "stratified": stratified_resample,
+    "residual": residual_resample,
+}
+
+
+def _weights(n: int, seed: int, zeros: int = 3) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    log_w = 2.0 * torch.randn(n, generator=g, dtype=torch.float64)
+    log_w[torch.randperm(n, generator=g)[:zeros]] = -math.inf
+    return log_w
+
+
+class TestEffectiveSampleSize:
+    def test_feature(self):
+        n = 50
+        assert effective_sample_size(torch.zeros(n)).item() == pytest.approx(n, rel=1e-6)
+        one_hot = torch.full((n,), -math.inf)
+        one_hot[7] = 0.0
+        assert effective_sample_size(one_hot).item() == pytest.approx(1.0)
+        log_w = _weights(n, 0)
+        w = torch.exp(log_w)
+        w = w / w.sum()
+        assert effective_sample_size(log_w).item() == pytest.approx(1 / (w**2).sum().item())
+        assert ess_fraction(log_w).item() == pytest.approx(1 / (w**2).sum().item() / n)
+
+    def test_scale_free(self):
+        # huge log weights: never exponentiated raw, shift-invariant
+        log_w = 1e4 * torch.randn(100, generator=torch.Generator().manual_seed(1))
+        e1 = effective_sample_size(log_w)
+        e2 = effective_sample_size(log_w + 1e6)
+        assert torch.isfinite(e1) and 1.0 <= e1.item() <= 100
+        assert e1.item() == pytest.approx(e2.item(), rel=1e-3)
+
+    def test_cardinality(self):
+        assert effective_sample_size(torch.zeros(2, 3, 10)).shape == (2, 3)
+
+    def test_normalize(self):
+        log_w = _weights(20, 2)
+        lw = normalize_log_weights(log_w)
+        assert torch.logsumexp(lw, -1).item() == pytest.approx(0.0, abs=1e-12)
+
+
+@pytest.mark.parametrize("name", list(FUNCS))
+class TestResamplers:
+    def test_smoke(self, name):
+        g = torch.Generator().manual_seed(0)
+        idx = FUNCS[name](torch.zeros(200), g)
+        assert idx.shape == (200,) and idx.dtype == torch.int64
+        assert int(idx.min()) >= 0 and int(idx.max()) < 200
+
+    def test_cardinality(self, name):
+        g = torch.Generator().manual_seed(0)
+        log_w = torch.randn(2, 3, 17, generator=g)
+        assert FUNCS[name](log_w, g).shape == (2, 3, 17)
+        assert FUNCS[name](log_w, g, num=5).shape == (2, 3, 5)
+        assert FUNCS[name](log_w, g, num=40).shape == (2, 3, 40)
+
+    def test_unbiased(self, name):
+        """Mean offspring counts over R draws equal N·W within 5 standard errors."""
+        n, reps = 20, 4000
+        log_w = _weights(n, 3)
+        w = torch.exp(normalize_log_weights(log_w))
+        g = torch.Generator().manual_seed(11)
+        idx = FUNCS[name](log_w.expand(reps, n), g)
+        counts = offspring_counts(idx, n).double()
+        mean = counts.mean(0)
+        var_multi = n * w * (1 - w)  # multinomial variance: an upper bound for all four
+        se = torch.sqrt(var_multi.clamp(min=1e-2) / reps)
+        z = ((mean - n * w) / se).abs()
+        assert float(z.max()) < 5.0, (name, z.max(), mean, n * w)
+        assert torch.all(counts.sum(-1) == n)
+
+    def test_batch_rows_independent(self, name):
+        """Each row of a batch follows its own weights (one-hot rows give constant indices)."""
+        n = 30
+        log_w = torch.full((4, n), -math.inf)
+        for r, k in enumerate([0, 5, 17, n - 1]):
+            log_w[r, k] = 0.0
+        idx = FUNCS[name](log_w, torch.Generator().manual_seed(0))
+        for r, k in enumerate([0, 5, 17, n - 1]):
+            assert torch.all(idx[r] == k)
+
+    def test_neg_inf_never_selected(self, name):
+        n = 64
+        log_w = torch.randn(500, n, generator=torch.Generator().manual_seed(4))
+        log_w[:, ::3] = -math.inf
+        log_w[:, -1] = -math.inf  # the last particle: the clamp must not give it offspring
+        idx = FUNCS[name](log_w, torch.Generator().manual_seed(5))
+        assert not bool(((idx % 3) == 0).any())
+        assert not bool((idx == n - 1).any())
+
+    def test_float32_cumsum_trap(self, name):
+        """N = 1e5 float32 weights: indices stay in range and zero-weight tail is never hit."""
+        n = 100_000
+        log_w = torch.randn(n, generator=torch.Generator().manual_seed(6)).float()
+        log_w[-10:] = -math.inf
+        for seed in range(3):
+            idx = FUNCS[name](log_w, torch.Generator().manual_seed(seed))
+            assert int(idx.max()) < n - 10
+
+    def test_degenerate(self, name):
+        log_w = torch.tensor([-1e30, 0.0, -1e30, -1e30])
+        idx = FUNCS[name](log_w, torch.Generator().manual_seed(0))
+        assert torch.all(idx == 1)
+
+    def test_reproducible(self, name):
+        log_w = _weights(50, 8)
+        a = FUNCS[name](log_w, torch.Generator().manual_seed(3))
+        b = FUNCS[name](log_w, torch.Generator().manual_seed(3))
+        assert torch.equal(a, b)
+
+    def test_exception(self, name):
+        f = FUNCS[name]
+        with pytest.raises(ValueError, match="log_w.*NaN"):
+            f(torch.tensor([0.0, float("nan"), 1.0]))
+        with pytest.raises(ValueError, match="log_w.*\\+inf"):
+            f(torch.tensor([0.0, float("inf")]))
+        with pytest.raises(ValueError, match="log_w.*all -inf"):
+            f(torch.tensor([[0.0, 1.0], [-math.inf, -math.inf]]))
+        with pytest.raises(ValueError, match="log_w.*shape"):
+            f(torch.tensor(1.0))
+        with pytest.raises(ValueError, match="log_w.*shape"):
+            f(torch.zeros(3, 0))
+        with pytest.raises(TypeError, match="log_w"):
+            f(torch.zeros(3, dtype=torch.int64))
+        with pytest.raises(TypeError, match="log_w"):
+            f([0.0, 1.0])
+        with pytest.raises(ValueError, match="num"):
+            f(torch.zeros(3), None, -1)
+
+    def test_module(self, name):
+        log_w = _weights(40, 9)
+        mod = RESAMPLERS[name]()
+        a = mod(log_w, torch.Generator().manual_seed(2))
+        b = FUNCS[name](log_w, torch.Generator().manual_seed(2))
+        assert torch.equal(a, b)
+        assert get_resampler(name).__class__ is RESAMPLERS[name]
+
+
+class TestVarianceProperties:
+    def test_systematic_floor_ceil(self):
+        n, reps = 37, 2000
+        log_w = _weights(n, 12, zeros=5)
+        nw = n * torch.exp(normalize_log_weights(log_w))
+        idx = systematic_resample(log_w.expand(reps, n), torch.Generator().manual_seed(1))
+        c = offspring_counts(idx, n).double()
+        assert torch.all(c >= torch.floor(nw) - 1e-9)
+        assert torch.all(c <= torch.ceil(nw) + 1e-9)
+
+    def test_stratified_within_one(self):
+        n, reps = 37, 2000
+        log_w = _weights(n, 13, zeros=5)
+        nw = n * torch.exp(normalize_log_weights(log_w))
+        idx = stratified_resample(log_w.expand(reps, n), torch.Generator().manual_seed(1))
+        c = offspring_counts(idx, n).double()
+        assert torch.all(c >= torch.floor(nw) - 1)
+        assert torch.all(c <= torch.ceil(nw) + 1)
+
+    def test_residual_deterministic_part(self):
+        n, reps = 37, 2000
+        log_w = _weights(n, 14, zeros=5)
+        nw = n * torch.exp(normalize_log_weights(log_w))
+        idx = residual_resample(log_w.expand(reps, n), torch.Generator().manual_seed(1))
+        c = offspring_counts(idx, n).double()
+        assert torch.all(c >= torch.floor(nw) - 1e-9)
+        # each particle gets at most floor + (number of residual draws)
+        r = n - torch.floor(nw).sum()
+        assert torch.all(c <= torch.floor(nw) + r)
+
+    def test_variance_ordering(self):
+        """Total offspring variance: systematic, stratified, residual below multinomial."""
+        n, reps = 30, 4000
+        log_w = _weights(n, 15, zeros=0)
+        tot = {}
+        for name, f in FUNCS.items():
+            idx = f(log_w.expand(reps, n), torch.Generator().manual_seed(21))
+            tot[name] = float(offspring_counts(idx, n).double().var(0).sum())
+        w = torch.exp(normalize_log_weights(log_w))
+        exact_multi = float((n * w * (1 - w)).sum())
+        assert tot["multinomial"] == pytest.approx(exact_multi, rel=0.1)
+        for name in ("systematic", "stratified", "residual"):
+            assert tot[name] < 0.8 * tot["multinomial"], tot
+
+    def test_residual_not_filterpy_bias(self):
+        """filterpy's residual weights W - floor(N W) would overweight heavy particles here."""
+        n, reps = 4, 20000
+        w = torch.tensor([0.55, 0.15, 0.15, 0.15], dtype=torch.float64)
+        idx = residual_resample(torch.log(w).expand(reps, n), torch.Generator().manual_seed(0))
+        mean = offspring_counts(idx, n).double().mean(0)
+        # exact: floor(N W) = (2, 0, 0, 0), R = 2 residual draws with probabilities
+        # (0.1, 0.3, 0.3, 0.3) -> E[count_0] = 2.2
+        assert float(mean[0]) == pytest.approx(2.2, abs=0.02)
+
+
+class TestHelpers:
+    def test_counts_to_indices(self):
+        c = torch.tensor([[0, 2, 1, 0], [1, 1, 1, 0]])
+        assert counts_to_indices(c).tolist() == [[1, 1, 2], [0, 1, 2]]
+        with pytest.raises(ValueError, match="counts"):
+            counts_to_indices(torch.tensor([[1, 0], [1, 1]]))
+
+    def test_offspring_roundtrip(self):
+        idx = torch.tensor([[3, 0, 3, 1]])
+        c = offspring_counts(idx, 5)
+        assert c.tolist() == [[1, 1, 0, 2, 0]]
+        assert counts_to_indices(c).tolist() == [[0, 1, 3, 3]]
+
+    def test_gather(self):
+        x = torch.arange(12.0).reshape(2, 3, 2)
+        idx = torch.tensor([[2, 2, 0], [1, 0, 0]])
+        out = gather_particles(x, idx)
+        assert torch.equal(out[0], x[0, [2, 2, 0]]) and torch.equal(out[1], x[1, [1, 0, 0]])
+        with pytest.raises(ValueError, match="particles"):
+            gather_particles(x[0], idx)
+
+    def test_get_resampler(self):
+        assert isinstance(get_resampler("systematic"), SystematicResampler)
+        assert isinstance(get_resampler("multinomial"), MultinomialResampler)
+        assert isinstance(get_resampler("stratified"), StratifiedResampler)
+        assert isinstance(get_resampler("residual"), ResidualResampler)
+        f = lambda lw, g=None, num=None: systematic_resample(lw, g, num)
+        assert get_resampler(f) is f
+        with pytest.raises(ValueError, match="resampler"):
+            get_resampler("bogus")
+        with pytest.raises(TypeError, match="resampler"):
+            get_resampler(3)
