@@ -1,0 +1,243 @@
+"""Annealing schedules: the inverse temperature ``β_k`` of annealed particle optimisation.
+
+Layer ``k`` weights the particles by ``π ∝ exp(−β_k V(x))`` (energy ``V = −log p``, lower is
+better). Three schedules:
+
+- :class:`ESSSchedule` (default, Deutscher & Reid; every public implementation uses α = 0.5):
+  choose ``β`` so the effective sample size fraction ``ESS/N = (Σw)² / (N Σw²)`` equals α. ESS/N
+  decreases monotonically in β, so :func:`ess_target_beta` bisects on ``log β`` in float64 and
+  log space. It makes the overall scale of ``V`` irrelevant.
+- :class:`PolynomialSchedule`: ``β_k = s·(k+1)^b``.
+- :class:`GeometricSchedule`: ``β_k = β_0·c^k``.
+
+A schedule is any callable ``(layer: int, energies (P,)) -> β`` (0-dim tensor).
+
+Example:
+    >>> sol = ess_target_beta(torch.randn(200), alpha=0.5)
+    >>> round(float(sol.ess_fraction), 3)
+    0.5
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple, Protocol
+
+import torch
+
+__all__ = [
+    "BetaSolution",
+    "AnnealingSchedule",
+    "ESSSchedule",
+    "PolynomialSchedule",
+    "GeometricSchedule",
+    "check_energies",
+    "annealing_log_weights",
+    "ess_fraction_at_beta",
+    "ess_target_beta",
+    "get_schedule",
+]
+
+
+class BetaSolution(NamedTuple):
+    """Result of :func:`ess_target_beta`: ``beta (...)`` and the ``ess_fraction (...)`` achieved."""
+
+    beta: torch.Tensor
+    ess_fraction: torch.Tensor
+
+
+def check_energies(energies: torch.Tensor, name: str = "energies") -> None:
+    """Raise a typed error unless ``energies (..., P)`` are usable for weighting.
+
+    ``+inf`` is allowed (an impossible particle, weight zero) but every row needs one finite
+    energy; NaN and ``-inf`` are errors.
+    """
+    if not isinstance(energies, torch.Tensor):
+        raise TypeError(f"{name}: expected a torch.Tensor, got {type(energies).__name__}")
+    if not energies.is_floating_point():
+        raise TypeError(f"{name}: expected a floating-point tensor, got dtype {energies.dtype}")
+    if energies.dim() < 1 or energies.shape[-1] < 1:
+        raise ValueError(
+            f"{name}: expected shape (..., P) with P >= 1, got {tuple(energies.shape)}"
+        )
+    if bool(torch.isnan(energies).any()):
+        n = int(torch.isnan(energies).sum())
+        raise ValueError(f"{name}: {n} NaN energies (the energy function returned NaN)")
+    if bool((energies == -math.inf).any()):
+        raise ValueError(f"{name}: -inf energies are not allowed (lower is better, must be finite)")
+    if bool((~torch.isfinite(energies)).all(dim=-1).any()):
+        raise ValueError(f"{name}: every particle of a row has infinite energy")
+
+
+def annealing_log_weights(energies: torch.Tensor, beta: torch.Tensor | float) -> torch.Tensor:
+    """Log weights ``−β (V − min V)`` of ``energies (..., P)`` at inverse temperature ``beta``.
+
+    Shifting by the row minimum keeps every finite particle's log weight finite even for huge β;
+    ``+inf`` energies get ``−inf``; with ``β = 0`` all finite particles weigh the same.
+    """
+    check_energies(energies)
+    beta = torch.as_tensor(beta, dtype=energies.dtype, device=energies.device)
+    if bool((beta < 0).any()) or bool(torch.isnan(beta).any()):
+        raise ValueError("beta: expected non-negative inverse temperatures")
+    finite = torch.isfinite(energies)
+    vmin = torch.where(finite, energies, math.inf).amin(dim=-1, keepdim=True)
+    u = torch.where(finite, energies - vmin, 0.0)
+    lw = -beta[..., None] * u
+    return torch.where(finite, lw, -math.inf)
+
+
+def _log_ess_fraction(u: torch.Tensor, finite: torch.Tensor, beta: torch.Tensor) -> torch.Tensor:
+    lw = torch.where(finite, -beta[..., None] * u, -math.inf)
+    n = u.shape[-1]
+    return 2 * torch.logsumexp(lw, -1) - torch.logsumexp(2 * lw, -1) - math.log(n)
+
+
+def ess_fraction_at_beta(energies: torch.Tensor, beta: torch.Tensor | float) -> torch.Tensor:
+    """ESS/N of the weights ``exp(−β V)``: ``energies (..., P)``, ``beta (...)`` → ``(...)``
+    (float64)."""
+    check_energies(energies)
+    v = energies.to(torch.float64)
+    finite = torch.isfinite(v)
+    vmin = torch.where(finite, v, math.inf).amin(dim=-1, keepdim=True)
+    u = torch.where(finite, v - vmin, 0.0)
+    b = torch.as_tensor(beta, dtype=torch.float64, device=v.device).expand(v.shape[:-1])
+    return torch.exp(_log_ess_fraction(u, finite, b))
+
+
+def ess_target_beta(
+    energies: torch.Tensor,
+    alpha: float = 0.5,
+    *,
+    beta_max: float = 1e12,
+    iterations: int = 100,
+) -> BetaSolution:
+    """Inverse temperature ``β`` with ``ESS(exp(−β V)) / P = alpha``, by bisection on ``log β``.
+
+    Works in float64 and log space, batched over leading dims. ``ESS/P`` decreases from
+    ``P_finite/P`` at ``β → 0`` to ``P_min/P`` (the number of particles sharing the minimum
+    energy) at ``β → ∞``. Outside that range the nearest end is returned:
+
+    - target above ``P_finite/P`` (only possible with ``+inf`` energies): ``β = 0``;
+    - target not reached by ``beta_max`` (e.g. all energies equal): ``β = beta_max``.
+
+    The returned ``ess_fraction`` is the one actually achieved, so callers can see the cap.
+
+    Args:
+        energies: ``(..., P)`` energies (lower is better); ``+inf`` allowed, NaN/−inf are errors.
+        alpha: target ESS fraction in ``(0, 1]``.
+        beta_max: cap on β (absolute; energies are shifted by their minimum, so huge β are safe).
+        iterations: bisection steps (100 reaches float64 resolution on any realistic bracket).
+    Returns:
+        :class:`BetaSolution` with ``beta (...)`` and ``ess_fraction (...)`` (float64).
+    """
+    check_energies(energies)
+    if not (0.0 < float(alpha) <= 1.0):
+        raise ValueError(f"alpha: expected a target ESS fraction in (0, 1], got {alpha}")
+    if not (beta_max > 0 and math.isfinite(beta_max)):
+        raise ValueError(f"beta_max: expected a positive finite number, got {beta_max}")
+    v = energies.to(torch.float64)
+    finite = torch.isfinite(v)
+    vmin = torch.where(finite, v, math.inf).amin(dim=-1, keepdim=True)
+    u = torch.where(finite, v - vmin, 0.0)
+    umax = u.amax(dim=-1)
+    log_alpha = math.log(alpha)
+    batch = v.shape[:-1]
+
+    # bracket: at lo every β·u ≤ 1e-9 (fraction ≈ P_finite/P); hi = beta_max
+    safe_umax = torch.where(umax > 0, umax, torch.ones_like(umax))
+    lo = torch.log(torch.clamp(1e-9 / safe_umax, max=beta_max * 1e-3))
+    hi = torch.full(batch, math.log(beta_max), dtype=torch.float64, device=v.device)
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        above = _log_ess_fraction(u, finite, torch.exp(mid)) > log_alpha
+        lo = torch.where(above, mid, lo)
+        hi = torch.where(above, hi, mid)
+    beta = torch.exp(0.5 * (lo + hi))
+
+    cap = torch.full_like(beta, beta_max)
+    reaches_cap = _log_ess_fraction(u, finite, cap) >= log_alpha
+    beta = torch.where(reaches_cap, cap, beta)
+    f0 = finite.sum(-1).to(torch.float64) / v.shape[-1]
+    beta = torch.where((f0 <= alpha) & ~reaches_cap, torch.zeros_like(beta), beta)
+    frac = torch.exp(_log_ess_fraction(u, finite, beta))
+    return BetaSolution(beta, frac)
+
+
+class AnnealingSchedule(Protocol):
+    """``schedule(layer, energies (P,)) -> β`` (0-dim tensor, non-negative)."""
+
+    def __call__(self, layer: int, energies: torch.Tensor) -> torch.Tensor: ...
+
+
+class ESSSchedule:
+    """β chosen per layer so the ESS fraction of ``exp(−β V)`` equals ``alpha`` (default 0.5).
+
+    Thin wrapper of :func:`ess_target_beta`; ignores the layer index.
+    """
+
+    def __init__(self, alpha: float = 0.5, beta_max: float = 1e12) -> None:
+        if not (0.0 < float(alpha) <= 1.0):
+            raise ValueError(f"alpha: expected a target ESS fraction in (0, 1], got {alpha}")
+        self.alpha = float(alpha)
+        self.beta_max = float(beta_max)
+
+    def __call__(self, layer: int, energies: torch.Tensor) -> torch.Tensor:
+        return ess_target_beta(energies, self.alpha, beta_max=self.beta_max).beta
+
+    def __repr__(self) -> str:
+        return f"ESSSchedule(alpha={self.alpha}, beta_max={self.beta_max})"
+
+
+class PolynomialSchedule:
+    """``β_k = scale · (k + 1)^power`` for layer ``k = 0, 1, …``."""
+
+    def __init__(self, power: float = 2.0, scale: float = 1.0) -> None:
+        if not scale > 0:
+            raise ValueError(f"scale: expected a positive number, got {scale}")
+        self.power = float(power)
+        self.scale = float(scale)
+
+    def __call__(self, layer: int, energies: torch.Tensor | None = None) -> torch.Tensor:
+        if layer < 0:
+            raise ValueError(f"layer: expected a non-negative index, got {layer}")
+        return torch.tensor(self.scale * (layer + 1) ** self.power, dtype=torch.float64)
+
+    def __repr__(self) -> str:
+        return f"PolynomialSchedule(power={self.power}, scale={self.scale})"
+
+
+class GeometricSchedule:
+    """``β_k = beta0 · ratio^k`` for layer ``k = 0, 1, …``."""
+
+    def __init__(self, ratio: float = 2.0, beta0: float = 1.0) -> None:
+        if not ratio > 0:
+            raise ValueError(f"ratio: expected a positive number, got {ratio}")
+        if not beta0 > 0:
+            raise ValueError(f"beta0: expected a positive number, got {beta0}")
+        self.ratio = float(ratio)
+        self.beta0 = float(beta0)
+
+    def __call__(self, layer: int, energies: torch.Tensor | None = None) -> torch.Tensor:
+        if layer < 0:
+            raise ValueError(f"layer: expected a non-negative index, got {layer}")
+        return torch.tensor(self.beta0 * self.ratio**layer, dtype=torch.float64)
+
+    def __repr__(self) -> str:
+        return f"GeometricSchedule(ratio={self.ratio}, beta0={self.beta0})"
+
+
+def get_schedule(schedule: str | AnnealingSchedule | None) -> AnnealingSchedule:
+    """Resolve ``None``/``"ess"`` (ESS α = 0.5), ``"polynomial"``, ``"geometric"`` or a callable."""
+    if schedule is None or schedule == "ess":
+        return ESSSchedule()
+    if schedule == "polynomial":
+        return PolynomialSchedule()
+    if schedule == "geometric":
+        return GeometricSchedule()
+    if isinstance(schedule, str):
+        raise ValueError(
+            f"schedule: unknown name {schedule!r}; expected 'ess', 'polynomial' or 'geometric'"
+        )
+    if callable(schedule):
+        return schedule
+    raise TypeError(f"schedule: expected a name or a callable, got {type(schedule).__name__}")
