@@ -9,6 +9,7 @@ import torch
 
 from torchmocap.filters.resampling import (
     RESAMPLERS,
+    KeepRedrawResampler,
     MultinomialResampler,
     ResidualResampler,
     StratifiedResampler,
@@ -18,6 +19,7 @@ from torchmocap.filters.resampling import (
     ess_fraction,
     gather_particles,
     get_resampler,
+    keep_redraw_resample,
     multinomial_resample,
     normalize_log_weights,
     offspring_counts,
@@ -31,6 +33,7 @@ FUNCS = {
     "systematic": systematic_resample,
     "stratified": stratified_resample,
     "residual": residual_resample,
+    "keep_redraw": keep_redraw_resample,
 }
 
 
@@ -83,6 +86,10 @@ class TestResamplers:
         g = torch.Generator().manual_seed(0)
         log_w = torch.randn(2, 3, 17, generator=g)
         assert FUNCS[name](log_w, g).shape == (2, 3, 17)
+        if name == "keep_redraw":
+            with pytest.raises(ValueError, match="num"):
+                FUNCS[name](log_w, g, num=5)
+            return
         assert FUNCS[name](log_w, g, num=5).shape == (2, 3, 5)
         assert FUNCS[name](log_w, g, num=40).shape == (2, 3, 40)
 
@@ -249,9 +256,26 @@ class TestHelpers:
         assert isinstance(get_resampler("multinomial"), MultinomialResampler)
         assert isinstance(get_resampler("stratified"), StratifiedResampler)
         assert isinstance(get_resampler("residual"), ResidualResampler)
+        assert isinstance(get_resampler("gall"), KeepRedrawResampler)
         f = lambda lw, g=None, num=None: systematic_resample(lw, g, num)
         assert get_resampler(f) is f
         with pytest.raises(ValueError, match="resampler"):
             get_resampler("bogus")
         with pytest.raises(TypeError, match="resampler"):
             get_resampler(3)
+
+
+class TestKeepRedraw:
+    def test_uniform_keeps_all(self):
+        """Equal weights: every particle is kept in place (keep probability 1)."""
+        idx = keep_redraw_resample(torch.zeros(3, 50), torch.Generator().manual_seed(0))
+        assert torch.equal(idx, torch.arange(50).expand(3, 50))
+
+    def test_keep_probability(self):
+        """Slot i keeps its own particle with probability W_i / max W (+ redraw chance W_i)."""
+        n, reps = 5, 20000
+        w = torch.tensor([0.4, 0.2, 0.2, 0.1, 0.1], dtype=torch.float64)
+        idx = keep_redraw_resample(torch.log(w).expand(reps, n), torch.Generator().manual_seed(1))
+        own = (idx == torch.arange(n)).double().mean(0)
+        expect = w / w.max() + (1 - w / w.max()) * w
+        assert torch.allclose(own, expect, atol=0.015)

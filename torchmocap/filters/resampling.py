@@ -45,6 +45,8 @@ __all__ = [
     "systematic_resample",
     "stratified_resample",
     "residual_resample",
+    "keep_redraw_resample",
+    "KeepRedrawResampler",
     "offspring_counts",
     "counts_to_indices",
     "gather_particles",
@@ -249,6 +251,35 @@ def residual_resample(
     return counts_to_indices(counts.reshape(*lead, n))
 
 
+def keep_redraw_resample(
+    log_w: torch.Tensor, generator: torch.Generator | None = None, num: int | None = None
+) -> torch.Tensor:
+    """Gall's interacting-simulated-annealing selection: keep or redraw each particle.
+
+    Particle ``i`` keeps its own slot with probability ``W_i / max W``; every other slot is
+    redrawn from the whole weighted set (multinomial). Unbiased:
+    ``E[count_i] = W_i/W_max + N·W_i − W_i/W_max = N·W_i``. With nearly uniform weights most
+    particles survive unchanged (less sample impoverishment than multinomial).
+
+    Args:
+        log_w: ``(..., N)`` unnormalised log weights.
+        generator: source of randomness.
+        num: must be ``None`` or ``N`` (slots are the particles themselves).
+    Returns:
+        ``(..., N)`` int64 ancestor indices; slot ``i`` holds ``i`` when kept.
+    """
+    check_log_weights(log_w)
+    n = log_w.shape[-1]
+    if num is not None and num != n:
+        raise ValueError(f"num: keep/redraw selection returns N = {n} indices, got num={num}")
+    lw = log_w.to(_work_dtype(log_w))
+    keep_prob = torch.exp(lw - lw.amax(dim=-1, keepdim=True))
+    keep = _uniform(tuple(log_w.shape), log_w, generator) < keep_prob
+    redraw = multinomial_resample(log_w, generator)
+    own = torch.arange(n, device=log_w.device).expand_as(redraw)
+    return torch.where(keep, own, redraw)
+
+
 def offspring_counts(indices: torch.Tensor, num_particles: int) -> torch.Tensor:
     """Number of offspring of each particle: int64 ``indices (..., M) -> counts (..., N)``."""
     if not isinstance(indices, torch.Tensor) or indices.dtype not in (torch.int64, torch.int32):
@@ -338,19 +369,28 @@ class ResidualResampler(Resampler):
     fn = staticmethod(residual_resample)
 
 
+class KeepRedrawResampler(Resampler):
+    """Thin wrapper of :func:`keep_redraw_resample` (Gall's ISA selection)."""
+
+    fn = staticmethod(keep_redraw_resample)
+
+
 RESAMPLERS: dict[str, type[Resampler]] = {
     "multinomial": MultinomialResampler,
     "systematic": SystematicResampler,
     "stratified": StratifiedResampler,
     "residual": ResidualResampler,
+    "keep_redraw": KeepRedrawResampler,
 }
 
 
 def get_resampler(
     name: str | Resampler | Callable[..., torch.Tensor],
 ) -> Callable[..., torch.Tensor]:
-    """Resolve a resampler by name (``multinomial``, ``systematic``, ``stratified``, ``residual``)
-    or return a given callable unchanged."""
+    """Resolve a resampler by name (``multinomial``, ``systematic``, ``stratified``, ``residual``,
+    ``keep_redraw``; ``gall`` is an alias of ``keep_redraw``) or return a callable unchanged."""
+    if name == "gall":
+        name = "keep_redraw"
     if isinstance(name, str):
         try:
             return RESAMPLERS[name]()
