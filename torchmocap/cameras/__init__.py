@@ -1,1 +1,48 @@
-"""torchmocap.cameras."""
+"""Camera rigs (OpenCV conventions, on kornia), calibration I/O, and visual-hull carving."""
+
+from torchmocap.cameras.calibration import (
+    UNITS,
+    read_bouguet_cal,
+    read_bouguet_rig,
+    read_rig,
+    rig_from_dict,
+    rig_to_dict,
+    write_rig,
+)
+from torchmocap.cameras.hull import VisualHull, largest_component, visual_hull
+from torchmocap.cameras.projection import (
+    backproject_pixels,
+    camera_centers,
+    distort_normalized,
+    intrinsics_matrix,
+    look_at,
+    max_monotonic_radius,
+    project_points,
+    world_to_camera,
+)
+from torchmocap.cameras.rig import CameraError, CameraRig, make_ceiling_rig, make_ring_rig
+
+__all__ = [
+    "UNITS",
+    "CameraError",
+    "CameraRig",
+    "VisualHull",
+    "backproject_pixels",
+    "camera_centers",
+    "distort_normalized",
+    "intrinsics_matrix",
+    "largest_component",
+    "look_at",
+    "make_ceiling_rig",
+    "make_ring_rig",
+    "max_monotonic_radius",
+    "project_points",
+    "read_bouguet_cal",
+    "read_bouguet_rig",
+    "read_rig",
+    "rig_from_dict",
+    "rig_to_dict",
+    "visual_hull",
+    "world_to_camera",
+    "write_rig",
+]

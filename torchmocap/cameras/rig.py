@@ -1,0 +1,236 @@
+"""``CameraRig``: a thin ``nn.Module`` holding C calibrated cameras; synthetic rig factories."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor, nn
+
+from torchmocap.cameras.projection import (
+    backproject_pixels,
+    camera_centers,
+    look_at,
+    project_points,
+)
+
+__all__ = ["CameraError", "CameraRig", "make_ceiling_rig", "make_ring_rig"]
+
+
+class CameraError(ValueError):
+    """Malformed camera parameters or calibration file (names the file and line when known)."""
+
+
+def _is_rotation(R: Tensor, tol: float) -> Tensor:
+    eye = torch.eye(3, dtype=R.dtype, device=R.device)
+    orth = (R @ R.transpose(-1, -2) - eye).abs().amax(dim=(-1, -2)) < tol
+    return orth & ((torch.linalg.det(R) - 1).abs() < tol)
+
+
+class CameraRig(nn.Module):
+    """C pinhole cameras with Brown–Conrady distortion (OpenCV conventions).
+
+    Buffers (move with ``.to(device/dtype)``): ``K (C, 3, 3)``, ``dist (C, 5)``
+    (k1, k2, p1, p2, k3), ``R (C, 3, 3)`` world-to-camera rotation, ``t (C, 3)`` translation
+    (``x_cam = R x + t``, world metres), ``image_size (C, 2)`` (width, height) as int64.
+
+    Args:
+        K: ``(C, 3, 3)`` intrinsics.
+        R: ``(C, 3, 3)`` rotations (checked orthonormal with det +1).
+        t: ``(C, 3)`` translations.
+        image_size: ``(C, 2)`` or ``(2,)`` (width, height) in pixels.
+        dist: ``(C, 5)`` distortion; default zeros.
+        names: optional camera names.
+
+    Example:
+        >>> rig = make_ring_rig(4)
+        >>> pix, depth, vis = rig.project(torch.zeros(7, 3))
+        >>> pix.shape
+        torch.Size([4, 7, 2])
+    """
+
+    K: Tensor
+    dist: Tensor
+    R: Tensor
+    t: Tensor
+    image_size: Tensor
+
+    def __init__(self, K: Tensor, R: Tensor, t: Tensor, image_size: Tensor | Sequence[int],
+                 dist: Tensor | None = None, names: Sequence[str] | None = None) -> None:
+        super().__init__()
+        K = torch.as_tensor(K)
+        if not K.is_floating_point():
+            K = K.double()
+        R, t = torch.as_tensor(R, dtype=K.dtype), torch.as_tensor(t, dtype=K.dtype)
+        if K.dim() != 3 or K.shape[-2:] != (3, 3):
+            raise CameraError(f"K must have shape (C, 3, 3), got {tuple(K.shape)}")
+        C = K.shape[0]
+        if R.shape != (C, 3, 3):
+            raise CameraError(f"R must have shape ({C}, 3, 3), got {tuple(R.shape)}")
+        if t.shape != (C, 3):
+            raise CameraError(f"t must have shape ({C}, 3), got {tuple(t.shape)}")
+        dist = torch.zeros(C, 5, dtype=K.dtype) if dist is None else torch.as_tensor(
+            dist, dtype=K.dtype)
+        if dist.shape != (C, 5):
+            raise CameraError(f"dist must have shape ({C}, 5) (k1, k2, p1, p2, k3), got "
+                              f"{tuple(dist.shape)}")
+        size = torch.as_tensor(image_size, dtype=torch.long)
+        if size.shape == (2,):
+            size = size.expand(C, 2).clone()
+        if size.shape != (C, 2) or bool((size <= 0).any()):
+            raise CameraError(f"image_size must be positive (C, 2) or (2,) (width, height), got "
+                              f"{tuple(size.shape)}")
+        for name, x in (("K", K), ("R", R), ("t", t), ("dist", dist)):
+            if not bool(torch.isfinite(x).all()):
+                raise CameraError(f"{name} contains non-finite values")
+        tol = 1e-4 if K.dtype == torch.float32 else 1e-6
+        ok = _is_rotation(R, tol)
+        if not bool(ok.all()):
+            bad = [i for i in range(C) if not bool(ok[i])]
+            raise CameraError(f"R of camera(s) {bad} is not a rotation matrix "
+                              "(R Rᵀ ≠ I or det ≠ 1)")
+        if names is not None and len(names) != C:
+            raise CameraError(f"names must have {C} entries, got {len(names)}")
+        self.names = list(names) if names is not None else [f"cam{i}" for i in range(C)]
+        self.register_buffer("K", K)
+        self.register_buffer("dist", dist)
+        self.register_buffer("R", R)
+        self.register_buffer("t", t)
+        self.register_buffer("image_size", size)
+
+    @property
+    def num_cameras(self) -> int:
+        return self.K.shape[0]
+
+    def __len__(self) -> int:
+        return self.num_cameras
+
+    @property
+    def has_distortion(self) -> bool:
+        return bool((self.dist != 0).any())
+
+    def camera_centers(self) -> Tensor:
+        """``(C, 3)`` optical centres in world coordinates."""
+        return camera_centers(self.R, self.t)
+
+    def optical_axes(self) -> Tensor:
+        """``(C, 3)`` unit viewing directions (camera +z) in world coordinates."""
+        return self.R[:, 2, :]
+
+    def project(self, points: Tensor, distort: bool = True) -> tuple[Tensor, Tensor, Tensor]:
+        """Project ``(*, N, 3)`` world points; see :func:`project_points`.
+
+        Returns ``pixels (*, C, N, 2)``, ``depth (*, C, N)``, ``visible (*, C, N)`` (in front and
+        inside the image). ``distort=False`` ignores the lens distortion.
+        """
+        return project_points(points, self.K.to(points.dtype), self.R.to(points.dtype),
+                              self.t.to(points.dtype),
+                              self.dist.to(points.dtype) if distort else None, self.image_size)
+
+    def forward(self, points: Tensor) -> Tensor:
+        """Pixels ``(*, C, N, 2)`` of ``(*, N, 3)`` world points (with distortion)."""
+        return self.project(points)[0]
+
+    def backproject(self, pixels: Tensor, undistort: bool = True, num_iters: int = 20
+                    ) -> tuple[Tensor, Tensor]:
+        """Rays ``(origins, unit directions)`` ``(*, C, N, 3)`` of ``(*, C, N, 2)`` pixels."""
+        dt = pixels.dtype
+        return backproject_pixels(pixels, self.K.to(dt), self.R.to(dt), self.t.to(dt),
+                                  self.dist.to(dt) if undistort else None, num_iters)
+
+    def subset(self, indices: Sequence[int]) -> CameraRig:
+        """A rig with the cameras at ``indices`` (in that order)."""
+        idx = torch.as_tensor(list(indices), dtype=torch.long)
+        return CameraRig(self.K[idx], self.R[idx], self.t[idx], self.image_size[idx],
+                         self.dist[idx], [self.names[i] for i in idx.tolist()])
+
+    def scaled_images(self, factor: float) -> CameraRig:
+        """The same cameras with images resized by ``factor`` (intrinsics scaled, centres kept)."""
+        K = self.K.clone()
+        K[:, :2, :] *= factor
+        # pixel-centre convention: u' + 0.5 = factor (u + 0.5)
+        K[:, 0, 2] += 0.5 * factor - 0.5
+        K[:, 1, 2] += 0.5 * factor - 0.5
+        size = torch.round(self.image_size.double() * factor).long()
+        return CameraRig(K, self.R, self.t, size, self.dist, self.names)
+
+    def extra_repr(self) -> str:
+        return f"num_cameras={self.num_cameras}, distortion={self.has_distortion}"
+
+
+def _focal_from_fov(width: float, fov_deg: float) -> float:
+    if not 0 < fov_deg < 180:
+        raise CameraError(f"fov_deg must be in (0, 180), got {fov_deg}")
+    return 0.5 * width / math.tan(math.radians(fov_deg) / 2)
+
+
+def _rig_from_eyes(eyes: Tensor, targets: Tensor, image_size: Sequence[int], fov_deg: float,
+                   up: Tensor, names: list[str]) -> CameraRig:
+    w, h = int(image_size[0]), int(image_size[1])
+    f = _focal_from_fov(w, fov_deg)
+    C = eyes.shape[0]
+    K = torch.tensor([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]],
+                     dtype=torch.float64).expand(C, 3, 3).clone()
+    R, t = look_at(eyes, targets, up)
+    return CameraRig(K, R, t, (w, h), None, names)
+
+
+def make_ring_rig(num: int = 4, radius: float = 4.0, height: float = 2.5,
+                  target: Sequence[float] = (0.0, 0.0, 1.0),
+                  image_size: Sequence[int] = (320, 240), fov_deg: float = 60.0,
+                  start_angle_deg: float = -90.0) -> CameraRig:
+    """``num`` cameras evenly spaced on a horizontal ring, all looking at ``target`` (Z-up world).
+
+    Args:
+        num: number of cameras (≥ 1).
+        radius: ring radius in metres (distance from the vertical axis through ``target``).
+        height: camera height in metres.
+        target: point all cameras look at, metres.
+        image_size: (width, height) in pixels.
+        fov_deg: horizontal field of view in degrees (sets ``fx = fy``).
+        start_angle_deg: azimuth of the first camera around ``target`` (−90° = on the −y side,
+            seeing the front of a human31 skeleton at rest, which faces −y).
+
+    Returns:
+        a distortion-free :class:`CameraRig` in float64.
+
+    Example:
+        >>> make_ring_rig(4, image_size=(640, 480)).K[0, 0, 0].round()
+        tensor(554., dtype=torch.float64)
+    """
+    if num < 1:
+        raise CameraError(f"num must be ≥ 1, got {num}")
+    if radius <= 0:
+        raise CameraError(f"radius must be positive, got {radius}")
+    tgt = torch.tensor(list(target), dtype=torch.float64)
+    ang = torch.deg2rad(torch.tensor(start_angle_deg, dtype=torch.float64)) + \
+        torch.arange(num, dtype=torch.float64) * (2 * math.pi / num)
+    eyes = torch.stack([tgt[0] + radius * torch.cos(ang), tgt[1] + radius * torch.sin(ang),
+                        torch.full_like(ang, height)], -1)
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    return _rig_from_eyes(eyes, tgt.expand(num, 3), image_size, fov_deg, up,
+                          [f"ring{i}" for i in range(num)])
+
+
+def make_ceiling_rig(num: int = 4, half_width: float = 2.0, height: float = 3.0,
+                     target: Sequence[float] = (0.0, 0.0, 0.9),
+                     image_size: Sequence[int] = (320, 240), fov_deg: float = 70.0) -> CameraRig:
+    """``num`` cameras in the upper corners of a square room looking down at ``target``.
+
+    Cameras sit on a circle of radius ``half_width·√2`` (the corners of a square of side
+    ``2·half_width`` when ``num = 4``) at ``height`` metres, like the bodytrack office rig.
+
+    Returns:
+        a distortion-free :class:`CameraRig` in float64.
+    """
+    if num < 1:
+        raise CameraError(f"num must be ≥ 1, got {num}")
+    tgt = torch.tensor(list(target), dtype=torch.float64)
+    ang = math.pi / 4 + torch.arange(num, dtype=torch.float64) * (2 * math.pi / num)
+    r = half_width * math.sqrt(2)
+    eyes = torch.stack([tgt[0] + r * torch.cos(ang), tgt[1] + r * torch.sin(ang),
+                        torch.full_like(ang, height)], -1)
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    return _rig_from_eyes(eyes, tgt.expand(num, 3), image_size, fov_deg, up,
+                          [f"ceiling{i}" for i in range(num)])
