@@ -29,7 +29,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from torchmocap.geometry.rotations import hat
+from torchmocap.geometry.rotations import axis_angle_rotation, hat
 
 __all__ = ["Skeleton", "Kinematics", "SkeletonError"]
 
@@ -479,6 +479,61 @@ class Skeleton(nn.Module):
         R_out = Rall[perm].transpose(0, 1).reshape(*batch, J, 3, 3)
         p_out = pall[perm].transpose(0, 1).reshape(*batch, J, 3)
         return Kinematics(rotations=R_out, positions=p_out, joint_names=self.joint_names)
+
+    def jacobian(self, theta: torch.Tensor, offsets: torch.Tensor | None = None):
+        """Analytic geometric Jacobians of every joint w.r.t. ``theta``.
+
+        Returns ``(kin, J_pos, J_rot)`` with ``J_pos (..., J, 3, D)`` = d p_i / d theta and
+        ``J_rot (..., J, 3, D)`` = the world-frame angular velocity of frame i per unit theta
+        (``dR_i = hat(J_rot dtheta) R_i``). A revolute DoF with world axis ``w`` at joint ``j``
+        contributes ``w x (p_i - p_j)`` to strict descendants' positions and ``w`` to the
+        rotations of ``j`` and its descendants; root translations contribute unit columns.
+        """
+        kin = self.forward(theta, offsets)
+        batch = theta.shape[:-1]
+        dtype, device = theta.dtype, theta.device
+        D, Jn = self.num_dofs, self.num_joints
+        R, p = kin.rotations, kin.positions
+        Jp = torch.zeros(*batch, Jn, 3, D, dtype=dtype, device=device)
+        Jr = torch.zeros(*batch, Jn, 3, D, dtype=dtype, device=device)
+        for d in self._trans_dofs:
+            Jp[..., :, d % 3, d] = 1.0
+        sub = self._subtree_masks()
+        for j, name in enumerate(self.joint_names):
+            axes = self.joint_axes[j]
+            if not axes:
+                continue
+            dofs = [d for d in self._joint_dofs[j] if d not in self._trans_dofs]
+            q = self.parents[j]
+            Rpre = (R[..., q, :, :] if q >= 0 else
+                    torch.eye(3, dtype=dtype, device=device).expand(*batch, 3, 3))
+            strict, incl = sub[j]
+            for a, d in zip(axes, dofs):
+                av = torch.tensor(a, dtype=dtype, device=device)
+                w = Rpre @ av  # (..., 3) world axis
+                Jr[..., incl, :, d] = w[..., None, :]
+                lever = p[..., strict, :] - p[..., j: j + 1, :]
+                Jp[..., strict, :, d] = torch.cross(w[..., None, :].expand_as(lever), lever, -1)
+                Rpre = Rpre @ axis_angle_rotation(av.expand(*batch, 3), theta[..., d])
+        return kin, Jp, Jr
+
+    def _subtree_masks(self):
+        if getattr(self, "_subtrees", None) is None:
+            kids: dict[int, list[int]] = {j: [] for j in range(self.num_joints)}
+            for c, q in enumerate(self.parents):
+                if q >= 0:
+                    kids[q].append(c)
+            out = []
+            for j in range(self.num_joints):
+                stack, desc = list(kids[j]), []
+                while stack:
+                    c = stack.pop()
+                    desc.append(c)
+                    stack.extend(kids[c])
+                desc.sort()
+                out.append((desc, [j] + desc))
+            self._subtrees = out
+        return self._subtrees
 
     def joint_positions(self, theta: torch.Tensor, offsets: torch.Tensor | None = None):
         """Global joint positions ``(..., J, 3)``."""
