@@ -283,3 +283,20 @@ class TestSkeleton:
         assert sk.num_dofs == 3 + 1 + 2 + 1
         with pytest.raises(KeyError, match="unknown skeleton preset"):
             preset("robot")
+
+
+def test_jacobian_matches_autograd_and_finite_differences():
+    from torchmocap.geometry import so3_log
+
+    sk = human31().double()
+    th = torch.randn(3, 31, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
+    kin, Jp, Jr = sk.jacobian(th)
+    Ja = torch.autograd.functional.jacobian(lambda t: sk(t).positions, th)
+    Ja = torch.stack([Ja[b, :, :, b] for b in range(3)])
+    assert (Ja - Jp).abs().max() < 1e-12
+    eps = 1e-6
+    for d in range(31):
+        t2 = th.clone()
+        t2[:, d] += eps
+        w = so3_log(sk(t2).rotations @ kin.rotations.transpose(-1, -2)) / eps
+        assert (w - Jr[..., d]).abs().max() < 1e-5, sk.dof_names[d]
