@@ -1,1 +1,36 @@
-"""torchmocap.io."""
+"""Motion-capture file I/O: BVH and ASF/AMC readers, BVH writer, skeleton maps."""
+
+from torchmocap.io.bvh import read_bvh, write_bvh
+from torchmocap.io.errors import MotionFormatError, SkeletonMapError
+from torchmocap.io.motion import Y_UP_TO_Z_UP, MotionClip
+from torchmocap.io.skeleton_maps import (
+    HUMAN31_JOINTS,
+    SkeletonMap,
+    chain_height,
+    detect_family,
+    guess_joint_map,
+    human31_positions,
+    known_families,
+    load_skeleton_map,
+    map_joints,
+    unmapped_joints,
+)
+
+__all__ = [
+    "HUMAN31_JOINTS",
+    "MotionClip",
+    "MotionFormatError",
+    "SkeletonMap",
+    "SkeletonMapError",
+    "Y_UP_TO_Z_UP",
+    "chain_height",
+    "detect_family",
+    "guess_joint_map",
+    "human31_positions",
+    "known_families",
+    "load_skeleton_map",
+    "map_joints",
+    "read_bvh",
+    "unmapped_joints",
+    "write_bvh",
+]
