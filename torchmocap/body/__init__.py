@@ -1,1 +1,27 @@
-"""torchmocap.body."""
+"""Body surfaces: capsule skin (distances, samples, meshes) and the skinned CC0 mesh (LBS)."""
+
+from torchmocap.body.capsules import (
+    ANTHROPOMETRIC_RADIUS_RATIOS,
+    CapsuleBody,
+    anthropometric_radii,
+    capsule_distance,
+    capsule_endpoints,
+    capsules_to_trimesh,
+    export_mesh,
+    facing_camera,
+    sample_capsule_surface,
+    segment_closest_points,
+)
+
+__all__ = [
+    "ANTHROPOMETRIC_RADIUS_RATIOS",
+    "CapsuleBody",
+    "anthropometric_radii",
+    "capsule_distance",
+    "capsule_endpoints",
+    "capsules_to_trimesh",
+    "export_mesh",
+    "facing_camera",
+    "sample_capsule_surface",
+    "segment_closest_points",
+]
