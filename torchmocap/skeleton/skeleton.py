@@ -288,6 +288,45 @@ class Skeleton(nn.Module):
         self._leaves = [j for j in range(1, J) if not self.joint_axes[j]]
         self._leaf_anc = [anc[j] for j in self._leaves]
 
+    def _program(self, device: torch.device) -> dict:
+        """Index tensors of the FK schedule, cached per device."""
+        key = str(device)
+        cache = self.__dict__.setdefault("_programs", {})
+        if key in cache:
+            return cache[key]
+        comp = [0] + [j for js, _ in self._levels for j in js] + list(self._leaves)
+        where = {j: k for k, j in enumerate(comp)}
+        art_order = [j for j in comp if j == 0 or self.joint_axes[j]]
+        art_pos = {j: k for k, j in enumerate(self._articulated)}
+        produced = []  # articulated positions in the order the groups produce them
+        groups = []
+        for art_ids, slots in self._local_groups:
+            groups.append([sl.to(device) for sl in slots])
+            produced.extend(art_ids)
+        produced.extend(self._art_no_axes)
+        pos_in_produced = {a: k for k, a in enumerate(produced)}
+        local_perm = [pos_in_produced[art_pos[j]] for j in art_order]
+        levels, s0 = [], 1
+        for js, parents in self._levels:
+            s1 = s0 + len(js)
+            levels.append(((s0, s1), torch.tensor([where[q] for q in parents], device=device)))
+            s0 = s1
+        leaves = None
+        if self._leaves:
+            leaves = ((s0, s0 + len(self._leaves)),
+                      torch.tensor([where[a] for a in self._leaf_anc], device=device))
+        perm = torch.tensor([where[j] for j in range(self.num_joints)], device=device)
+        cache[key] = {
+            "groups": groups,
+            "n_no_axes": len(self._art_no_axes),
+            "local_perm": torch.tensor(local_perm, device=device),
+            "comp_order": torch.tensor(comp, device=device),
+            "levels": levels,
+            "leaves": leaves,
+            "perm": perm,
+        }
+        return cache[key]
+
     # ------------------------------------------------------------------ lookups
     def joint_index(self, name: str) -> int:
         """Index of joint ``name`` (``KeyError`` listing the known joints otherwise)."""
@@ -422,62 +461,42 @@ class Skeleton(nn.Module):
         c1 = (1 - torch.cos(ang))[..., None, None]
         K = self._K.to(dtype)[:, None]
         K2 = self._K2.to(dtype)[:, None]
-        Rd = s * K + c1 * K2
-        Rd = Rd + torch.eye(3, dtype=dtype, device=device)
+        eye = torch.eye(3, dtype=dtype, device=device)
+        Rd = torch.addcmul(torch.addcmul(eye, s, K), c1, K2)
 
-        A = len(self._articulated)
-        local_parts, local_idx = [], []
-        for art_ids, slots in self._local_groups:
+        prog = self._program(device)
+        # local rotations of the articulated joints, in computation order  (A, B, 3, 3)
+        local_parts = []
+        for slots in prog["groups"]:
             L = Rd[slots[0]]
             for sl in slots[1:]:
                 L = L @ Rd[sl]
             local_parts.append(L)
-            local_idx.extend(art_ids)
-        if self._art_no_axes:
-            eye = torch.eye(3, dtype=dtype, device=device).expand(len(self._art_no_axes), B, 3, 3)
-            local_parts.append(eye)
-            local_idx.extend(self._art_no_axes)
-        local = torch.cat(local_parts, 0)
-        inv = torch.empty(A, dtype=torch.long)
-        inv[torch.tensor(local_idx)] = torch.arange(A)
-        local = local[inv.to(device)]  # (A, B, 3, 3) in articulated order
+        if prog["n_no_axes"]:
+            eye = torch.eye(3, dtype=dtype, device=device)
+            local_parts.append(eye.expand(prog["n_no_axes"], B, 3, 3))
+        local = torch.cat(local_parts, 0).index_select(0, prog["local_perm"])
+        off = off.index_select(0, prog["comp_order"])  # offsets in computation order
 
-        art_pos = {j: k for k, j in enumerate(self._articulated)}
-        # root
-        R_list = [local[0:1]]
-        p_root = off[0:1]
+        R_buf = torch.empty(J, B, 3, 3, dtype=dtype, device=device)
+        p_buf = torch.empty(J, B, 3, dtype=dtype, device=device)
+        R_buf[0] = local[0]
+        p_root = off[0]
         if self.root_translation:
-            p_root = p_root + th[self._trans_dofs].transpose(0, 1)[None]
-        p_list = [p_root]
-        done = [0]
-        for js, parents in self._levels:
-            Rall = torch.cat(R_list, 0) if len(R_list) > 1 else R_list[0]
-            pall = torch.cat(p_list, 0) if len(p_list) > 1 else p_list[0]
-            where = {j: k for k, j in enumerate(done)}
-            pid = torch.tensor([where[p] for p in parents], device=device)
-            Rp = Rall[pid]
-            jid = torch.tensor(js, device=device)
-            p_new = pall[pid] + (Rp @ off[jid][..., None])[..., 0]
-            R_new = Rp @ local[torch.tensor([art_pos[j] for j in js], device=device)]
-            R_list.append(R_new)
-            p_list.append(p_new)
-            done.extend(js)
-        Rall = torch.cat(R_list, 0)
-        pall = torch.cat(p_list, 0)
-        if self._leaves:
-            where = {j: k for k, j in enumerate(done)}
-            aid = torch.tensor([where[a] for a in self._leaf_anc], device=device)
-            Ra = Rall[aid]
-            lid = torch.tensor(self._leaves, device=device)
-            p_leaf = pall[aid] + (Ra @ off[lid][..., None])[..., 0]
-            Rall = torch.cat([Rall, Ra], 0)
-            pall = torch.cat([pall, p_leaf], 0)
-            done = done + self._leaves
-        perm = torch.empty(J, dtype=torch.long)
-        perm[torch.tensor(done)] = torch.arange(J)
-        perm = perm.to(device)
-        R_out = Rall[perm].transpose(0, 1).reshape(*batch, J, 3, 3)
-        p_out = pall[perm].transpose(0, 1).reshape(*batch, J, 3)
+            p_root = p_root + th[: 3].transpose(0, 1)
+        p_buf[0] = p_root
+        for (s0, s1), pidx in prog["levels"]:
+            Rp = R_buf.index_select(0, pidx)
+            p_buf[s0:s1] = p_buf.index_select(0, pidx) + (Rp @ off[s0:s1, ..., None])[..., 0]
+            R_buf[s0:s1] = Rp @ local[s0:s1]
+        if prog["leaves"] is not None:
+            (s0, s1), aidx = prog["leaves"]
+            Ra = R_buf.index_select(0, aidx)
+            p_buf[s0:s1] = p_buf.index_select(0, aidx) + (Ra @ off[s0:s1, ..., None])[..., 0]
+            R_buf[s0:s1] = Ra
+        perm = prog["perm"]
+        R_out = R_buf.index_select(0, perm).transpose(0, 1).reshape(*batch, J, 3, 3)
+        p_out = p_buf.index_select(0, perm).transpose(0, 1).reshape(*batch, J, 3)
         return Kinematics(rotations=R_out, positions=p_out, joint_names=self.joint_names)
 
     def jacobian(self, theta: torch.Tensor, offsets: torch.Tensor | None = None):
