@@ -1,7 +1,9 @@
 """Motion-capture file I/O: BVH and ASF/AMC readers, BVH writer, skeleton maps."""
 
+from torchmocap.io.asf import AsfSkeleton, read_amc, read_asf, read_asf_amc
 from torchmocap.io.bvh import read_bvh, write_bvh
 from torchmocap.io.errors import MotionFormatError, SkeletonMapError
+from torchmocap.io.load import bundled_clip_path, find_asf, load_motion
 from torchmocap.io.motion import Y_UP_TO_Z_UP, MotionClip
 from torchmocap.io.skeleton_maps import (
     HUMAN31_JOINTS,
@@ -17,6 +19,13 @@ from torchmocap.io.skeleton_maps import (
 )
 
 __all__ = [
+    "AsfSkeleton",
+    "bundled_clip_path",
+    "find_asf",
+    "load_motion",
+    "read_amc",
+    "read_asf",
+    "read_asf_amc",
     "HUMAN31_JOINTS",
     "MotionClip",
     "MotionFormatError",

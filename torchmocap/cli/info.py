@@ -1,0 +1,135 @@
+"""``torchmocap-info PATH [--asf ASF]``: describe a motion or camera-calibration file as JSON.
+
+Motion files (``.bvh``, ``.amc`` + ASF, ``.asf``): format, skeleton family, joints, frames, fps,
+duration, the straightened ankle-hip-head chain length (``height_m``) and the human31 joints the
+family's skeleton map cannot provide. Camera files (Bouguet ``.cal``, OpenCV-style or torchmocap
+``.yaml``/``.yml``/``.json`` rigs): format and per-camera intrinsics/extrinsics in metres.
+Unreadable input: one line on stderr and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+__all__ = ["describe", "main"]
+
+_CAMERA_SUFFIXES = (".cal", ".json", ".yaml", ".yml")
+
+
+def _round(x: float, nd: int = 6) -> float:
+    return round(float(x), nd)
+
+
+def _describe_motion(path: Path, asf: str | None) -> dict[str, Any]:
+    from torchmocap.io.errors import SkeletonMapError
+    from torchmocap.io.load import load_motion
+    from torchmocap.io.skeleton_maps import chain_height, unmapped_joints
+
+    clip = load_motion(path, asf=asf)
+    is_asf_only = path.suffix.lower() == ".asf"
+    try:
+        height = _round(chain_height(clip), 4)
+    except SkeletonMapError:
+        height = None
+    return {
+        "path": str(path),
+        "format": path.suffix.lower().lstrip("."),
+        "skeleton_family": clip.skeleton_family,
+        "joints": clip.num_joints,
+        "joint_names": clip.joint_names,
+        "frames": 0 if is_asf_only else clip.num_frames,
+        "fps": None if is_asf_only else _round(clip.fps, 4),
+        "duration_s": 0.0 if is_asf_only else _round(clip.duration_s, 4),
+        "height_m": height,
+        "unit_m": _round(clip.unit, 9),
+        "unmapped_joints": unmapped_joints(clip),
+    }
+
+
+def _camera_fields(K, dist, R, t, size) -> dict[str, Any]:
+    center = -(R.T @ t)
+    return {
+        "focal_px": [_round(K[0, 0]), _round(K[1, 1])],
+        "principal_point_px": [_round(K[0, 2]), _round(K[1, 2])],
+        "skew": _round(K[0, 1]),
+        "K": [[_round(v) for v in row] for row in K.tolist()],
+        "distortion": [_round(v, 9) for v in dist.tolist()],
+        "R": [[_round(v, 9) for v in row] for row in R.tolist()],
+        "t_m": [_round(v) for v in t.tolist()],
+        "center_m": [_round(v) for v in center.tolist()],
+        "image_size": [int(v) for v in size.tolist()],
+    }
+
+
+def _describe_camera(path: Path) -> dict[str, Any]:
+    from torchmocap.cameras import read_bouguet_cal, read_rig
+
+    if path.suffix.lower() == ".cal":
+        c = read_bouguet_cal(path)
+        cam = {
+            "name": path.stem,
+            **_camera_fields(c["K"], c["dist"], c["R"], c["t"], c["image_size"]),
+        }
+        return {"path": str(path), "format": "bouguet_cal", "cameras": [cam]}
+    rig = read_rig(path)
+    cams = []
+    for i in range(rig.num_cameras):
+        f = _camera_fields(
+            rig.K[i].double(),
+            rig.dist[i].double(),
+            rig.R[i].double(),
+            rig.t[i].double(),
+            rig.image_size[i],
+        )
+        cams.append({"name": rig.names[i], **f})
+    kind = "json" if path.suffix.lower() == ".json" else "yaml"
+    return {"path": str(path), "format": f"camera_rig_{kind}", "cameras": cams}
+
+
+def describe(path: str | Path, asf: str | None = None) -> dict[str, Any]:
+    """The JSON-able description printed by ``torchmocap-info``."""
+    from torchmocap.io.load import MOTION_SUFFIXES
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    suffix = path.suffix.lower()
+    if suffix in MOTION_SUFFIXES:
+        return _describe_motion(path, asf)
+    if suffix in _CAMERA_SUFFIXES:
+        return _describe_camera(path)
+    raise ValueError(
+        f"{path}: unsupported file type {suffix or '(none)'!r}; expected motion "
+        f"{MOTION_SUFFIXES} or camera calibration {_CAMERA_SUFFIXES}"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console entry point; returns the exit status (0 ok, 2 unreadable input)."""
+    parser = argparse.ArgumentParser(
+        prog="torchmocap-info",
+        description="Describe a motion file (BVH, ASF/AMC) or a camera calibration as JSON.",
+    )
+    parser.add_argument("path", help="motion (.bvh, .amc, .asf) or camera (.cal, .json, .yaml)")
+    parser.add_argument("--asf", default=None, help="ASF skeleton of an AMC file")
+    args = parser.parse_args(argv)
+    try:
+        out = describe(args.path, asf=args.asf)
+    except Exception as e:  # noqa: BLE001 - any failure is reported as one line, exit 2
+        msg = " ".join(str(e).split()) or type(e).__name__
+        print(f"torchmocap-info: error: {msg}", file=sys.stderr)
+        return 2
+    try:
+        print(json.dumps(out, indent=2))
+        sys.stdout.flush()
+    except BrokenPipeError:  # e.g. piped into `head`
+        sys.stderr.close()
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

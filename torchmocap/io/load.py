@@ -1,0 +1,79 @@
+"""``load_motion``: open any supported motion file by its extension."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from torchmocap.io.errors import MotionFormatError
+from torchmocap.io.motion import MotionClip
+
+__all__ = ["MOTION_SUFFIXES", "bundled_clip_path", "find_asf", "load_motion"]
+
+#: File extensions :func:`load_motion` understands.
+MOTION_SUFFIXES = (".bvh", ".amc", ".asf")
+
+
+def find_asf(amc_path: str | Path) -> Path:
+    """The ASF of an AMC file: the only ``.asf`` in the AMC's folder.
+
+    Raises:
+        MotionFormatError: none or several ``.asf`` files there (then pass ``asf=``).
+    """
+    amc_path = Path(amc_path)
+    found = sorted(p for p in amc_path.parent.glob("*") if p.suffix.lower() == ".asf")
+    if len(found) != 1:
+        what = "no .asf file" if not found else f"{len(found)} .asf files"
+        raise MotionFormatError(
+            f"{what} beside this AMC; name its skeleton explicitly (asf=... / --asf)", amc_path
+        )
+    return found[0]
+
+
+def load_motion(
+    path: str | Path,
+    asf: str | Path | None = None,
+    unit: float | None = None,
+    skip_frames: int = 0,
+    fps: float | None = None,
+    skeleton_map: str | Path | None = None,
+) -> MotionClip:
+    """Read a ``.bvh``, an ``.amc`` (with ``asf`` or the only ``.asf`` beside it), or an
+    ``.asf`` alone (its rest pose as a one-frame clip) into a Z-up metre :class:`MotionClip`.
+
+    Args:
+        path: the motion file.
+        asf: the skeleton of an AMC file.
+        unit: metres per file length unit (default: from the file or its skeleton map).
+        skip_frames: leading frames to drop (e.g. 1 for the cgspeed CMU MotionBuilder T-pose).
+        fps: frame rate of an AMC (default 120); ignored for BVH (the file states it).
+        skeleton_map: family name or map YAML for BVH files (default: auto-detected).
+    """
+    from torchmocap.io.asf import read_amc, read_asf
+    from torchmocap.io.bvh import read_bvh
+
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".bvh":
+        return read_bvh(path, unit=unit, skip_frames=skip_frames, skeleton_map=skeleton_map)
+    if suffix == ".amc":
+        asf_path = Path(asf) if asf is not None else find_asf(path)
+        return read_amc(path, asf_path, fps=fps or 120.0, skip_frames=skip_frames, unit=unit)
+    if suffix == ".asf":
+        return read_asf(path).rest_clip(unit)
+    raise MotionFormatError(
+        f"unsupported motion file type {suffix or '(none)'!r}; expected one of {MOTION_SUFFIXES}",
+        path,
+    )
+
+
+def bundled_clip_path(name: str = "cmu_131_01_walk") -> Path:
+    """Path of a motion clip shipped in ``torchmocap/assets/clips`` (CMU licence beside it).
+
+    ``cmu_131_01_walk``: 4 s (480 frames, 120 fps) of CMU subject 131's stylised walk, BVH.
+    """
+    from importlib import resources
+
+    res = resources.files("torchmocap") / "assets" / "clips" / f"{name}.bvh"
+    if not res.is_file():
+        raise FileNotFoundError(f"no bundled clip {name!r} in torchmocap/assets/clips")
+    return Path(str(res))
