@@ -1,1 +1,39 @@
-"""torchmocap.distributions."""
+"""Distributions for sensor noise: von Mises–Fisher on spheres, tangent Gaussians on SO(3), and
+the Gaussian-on-joint-parameters baseline of Pons-Moll et al. (torch.distributions API, explicit
+``torch.Generator`` everywhere)."""
+
+from torchmocap.distributions.bessel import (
+    bessel_iv_ratio,
+    log_bessel_iv,
+    log_bessel_iv_scaled_power,
+    log_bessel_ive_scaled_power,
+)
+from torchmocap.distributions.tangent_gaussian import (
+    ParameterGaussianNoise,
+    TangentGaussianSO3,
+    add_parameter_noise,
+)
+from torchmocap.distributions.von_mises_fisher import (
+    VonMisesFisher,
+    kappa_to_angle,
+    kappa_to_tangent_std,
+    sphere,
+    vmf_log_normalizer,
+    vmf_mean_resultant_length,
+)
+
+__all__ = [
+    "ParameterGaussianNoise",
+    "TangentGaussianSO3",
+    "VonMisesFisher",
+    "add_parameter_noise",
+    "bessel_iv_ratio",
+    "kappa_to_angle",
+    "kappa_to_tangent_std",
+    "log_bessel_iv",
+    "log_bessel_iv_scaled_power",
+    "log_bessel_ive_scaled_power",
+    "sphere",
+    "vmf_log_normalizer",
+    "vmf_mean_resultant_length",
+]
