@@ -78,7 +78,7 @@ def fit_pose_lm(
     prior: torch.Tensor | None = None,
     iterations: int = 30,
     damping: float = 1e-3,
-    tol: float = 1e-10,
+    tol: float = 1e-7,
 ) -> LMResult:
     """Fit ``theta`` so joints hit target positions (and frames target orientations).
 
@@ -132,7 +132,7 @@ def fit_pose_lm(
     cost = (r * r).sum(1)
     eye = torch.eye(D, dtype=dtype, device=device)
     it = 0
-    for it in range(1, iterations + 1):
+    for it in range(1, iterations + 1):  # noqa: B007 (read after the loop)
         JtJ = J.transpose(1, 2) @ J
         g = (J.transpose(1, 2) @ r[..., None])[..., 0]
         diag = JtJ.diagonal(dim1=1, dim2=2)
