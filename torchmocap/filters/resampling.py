@@ -386,6 +386,7 @@ RESAMPLERS: dict[str, type[Resampler]] = {
 
 def get_resampler(
     name: str | Resampler | Callable[..., torch.Tensor],
+    arg: str = "resampler",
 ) -> Callable[..., torch.Tensor]:
     """Resolve a resampler by name (``multinomial``, ``systematic``, ``stratified``, ``residual``,
     ``keep_redraw``; ``gall`` is an alias of ``keep_redraw``) or return a callable unchanged."""
@@ -396,8 +397,8 @@ def get_resampler(
             return RESAMPLERS[name]()
         except KeyError:
             raise ValueError(
-                f"resampler: unknown name {name!r}; expected one of {sorted(RESAMPLERS)}"
+                f"{arg}: unknown resampler {name!r}; expected one of {sorted(RESAMPLERS)}"
             ) from None
     if callable(name):
         return name
-    raise TypeError(f"resampler: expected a name or a callable, got {type(name).__name__}")
+    raise TypeError(f"{arg}: expected a resampler name or a callable, got {type(name).__name__}")
