@@ -12,16 +12,30 @@ from torchmocap.body.capsules import (
     sample_capsule_surface,
     segment_closest_points,
 )
+from torchmocap.body.skinning import (
+    HUMAN31_BONE_MAP,
+    HUMAN31_SEGMENTS,
+    SkeletonBinding,
+    SkinnedBody,
+    linear_blend_skinning,
+    rotation_between,
+)
 
 __all__ = [
     "ANTHROPOMETRIC_RADIUS_RATIOS",
+    "HUMAN31_BONE_MAP",
+    "HUMAN31_SEGMENTS",
     "CapsuleBody",
+    "SkeletonBinding",
+    "SkinnedBody",
     "anthropometric_radii",
     "capsule_distance",
     "capsule_endpoints",
     "capsules_to_trimesh",
     "export_mesh",
     "facing_camera",
+    "linear_blend_skinning",
+    "rotation_between",
     "sample_capsule_surface",
     "segment_closest_points",
 ]
