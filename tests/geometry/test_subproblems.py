@@ -218,3 +218,48 @@ class TestThreeAxis:
             return three_axis_decomposition(three_axis_rotation(w, a), ez, ey, ex).angles
 
         assert torch.autograd.gradcheck(f, (ang.requires_grad_(),))
+
+
+class TestOrthogonalThreeAxis:
+    AXES = [
+        [[0, 0, 1], [1, 0, 0], [0, 1, 0]],
+        [[-1, 0, 0], [0, -1, 0], [0, 0, -1]],
+        [[-1, 0, 0], [0, 1, 0], [0, 0, 1]],
+    ]
+
+    @pytest.mark.parametrize("axes", AXES)
+    def test_feature_matches_general_solver(self, axes):
+        from torchmocap.geometry.subproblems import orthogonal_three_axis_decomposition
+
+        g = torch.Generator().manual_seed(11)
+        ax = torch.tensor(axes, dtype=F64)
+        R = random_rotation_matrix(50000, g, dtype=F64)
+        ang, gimbal = orthogonal_three_axis_decomposition(R, ax)
+        rec = three_axis_rotation(ax.expand(50000, 2, 3, 3), ang)
+        assert float((rec - R[:, None]).abs().max()) < 1e-12
+        gen = three_axis_decomposition(R, ax[0], ax[1], ax[2]).angles
+        # same solution set (order may differ)
+        d = _wrap(ang[:, :, None] - gen[:, None]).abs().amax(-1)  # (N, 2, 2)
+        same = torch.minimum(d[:, 0, 0] + d[:, 1, 1], d[:, 0, 1] + d[:, 1, 0])
+        assert float(same.max()) < 1e-8
+        assert not bool(gimbal.any())
+
+    def test_feature_gimbal_exact(self):
+        from torchmocap.geometry.subproblems import orthogonal_three_axis_decomposition
+
+        ax = torch.tensor(self.AXES[0], dtype=F64)
+        R = three_axis_rotation(ax, torch.tensor([0.3, -math.pi / 2, 0.2], dtype=F64))
+        ang, gimbal = orthogonal_three_axis_decomposition(
+            R, ax, default_theta1=torch.tensor(0.3, dtype=F64))
+        assert bool(gimbal)
+        assert torch.allclose(ang[0], torch.tensor([0.3, -math.pi / 2, 0.2], dtype=F64))
+        assert float((three_axis_rotation(ax.expand(2, 3, 3), ang) - R).abs().max()) < 1e-12
+
+    def test_gradcheck(self):
+        from torchmocap.geometry.subproblems import orthogonal_three_axis_decomposition
+
+        ax = torch.tensor(self.AXES[1], dtype=F64)
+        a = torch.tensor([[0.3, 0.4, -0.2], [1.0, -0.5, 2.0]], dtype=F64, requires_grad=True)
+        assert torch.autograd.gradcheck(
+            lambda x: orthogonal_three_axis_decomposition(three_axis_rotation(ax, x), ax)[0],
+            (a,))

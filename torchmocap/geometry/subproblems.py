@@ -21,6 +21,7 @@ Example:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -34,6 +35,8 @@ __all__ = [
     "subproblem1",
     "subproblem2",
     "three_axis_decomposition",
+    "orthogonal_three_axis_decomposition",
+    "axes_are_orthogonal",
     "three_axis_rotation",
     "rotate_about_axis",
 ]
@@ -372,3 +375,62 @@ def three_axis_decomposition(
         residual = angles.new_empty(0)
     del degenerate
     return ThreeAxisResult(angles, exact.detach(), gimbal.detach(), residual)
+
+
+def orthogonal_three_axis_decomposition(
+    R: torch.Tensor,
+    axes: torch.Tensor,
+    default_theta1: torch.Tensor | None = None,
+    tol: float | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Closed-form :func:`three_axis_decomposition` for three mutually orthogonal axes.
+
+    With ``e1 = w1``, ``e2 = w2``, ``e3 = w1 x w2 = h w3`` (``h = +-1``) and ``M = E^T R E``
+    (``E = [e1 e2 e3]``) the problem is ``Rx(a) Ry(b) Rz(c) = M``:
+    ``a = atan2(-M12, M22)``, ``b = atan2(M02, cos a M22 - sin a M12)``,
+    ``c = atan2(cos a M10 + sin a M20, cos a M11 + sin a M21)``; ``(t1, t2, t3) = (a, b, h c)``.
+    The second solution is ``(a + pi, pi - b, c + pi)`` (wrapped to ``(-pi, pi]``). ``b`` and ``c``
+    are computed *given* ``a``, so the gimbal case (``M12 = M22 = 0``) needs no special branch:
+    ``a = default_theta1`` (0 if omitted) there and the result is still exact. About 10x fewer
+    operations than the general solver; every rotation is reachable.
+
+    Args:
+        R: ``(*, 3, 3)`` rotations.
+        axes: ``(*, 3, 3)`` rows ``w1, w2, w3``, mutually orthogonal unit vectors (not checked
+            here; :func:`axes_are_orthogonal` checks).
+        default_theta1: ``(*)`` value of ``t1`` under gimbal lock.
+        tol: gimbal flag tolerance on ``M12^2 + M22^2`` (default ``1e-9`` float64, ``1e-4``).
+    Returns:
+        ``angles (*, 2, 3)`` and ``gimbal (*)`` bool.
+    """
+    check_last_dims(R, (3, 3), "R")
+    check_last_dims(axes, (3, 3), "axes")
+    t = _tol(R.dtype, tol)
+    w1, w2, w3 = axes.unbind(-2)
+    e3 = _cross(w1, w2)
+    h = _dot(e3, w3)  # +-1
+    E = torch.stack([w1, w2, e3], dim=-1)  # columns
+    M = E.transpose(-1, -2) @ R @ E
+    m12, m22 = M[..., 1, 2], M[..., 2, 2]
+    gimbal = (m12 * m12 + m22 * m22) <= t
+    lock = (m12 * m12 + m22 * m22) <= (16 * torch.finfo(R.dtype).eps) ** 2
+    a = _safe_atan2(-m12, m22)
+    if default_theta1 is not None:
+        a = torch.where(lock, default_theta1.to(a), a)
+    ca, sa = torch.cos(a), torch.sin(a)
+    b = torch.atan2(M[..., 0, 2], ca * m22 - sa * m12)
+    c = torch.atan2(ca * M[..., 1, 0] + sa * M[..., 2, 0], ca * M[..., 1, 1] + sa * M[..., 2, 1])
+    pi = math.pi
+    a2 = torch.where(a > 0, a - pi, a + pi)
+    b2 = torch.where(b >= 0, pi - b, -pi - b)
+    c2 = torch.where(c > 0, c - pi, c + pi)
+    angles = torch.stack(
+        [torch.stack([a, b, h * c], -1), torch.stack([a2, b2, h * c2], -1)], dim=-2
+    )
+    return angles, gimbal
+
+
+def axes_are_orthogonal(axes: torch.Tensor, tol: float = 1e-6) -> bool:
+    """True when the rows of every ``(*, 3, 3)`` ``axes`` are mutually orthogonal unit vectors."""
+    G = axes @ axes.transpose(-1, -2)
+    return bool((G - torch.eye(3, dtype=axes.dtype, device=axes.device)).abs().max() <= tol)
