@@ -17,11 +17,11 @@ class MotionFormatError(ValueError):
 
     def __init__(self, message: str, path: str | Path | None = None, line: int | None = None):
         self.path = None if path is None else str(path)
-        self.line = line
+        self.line = line if line is not None and line >= 1 else None
         self.reason = message
         where = self.path or "<motion>"
-        if line is not None:
-            where = f"{where}:{line}"
+        if self.line is not None:
+            where = f"{where}:{self.line}"
         super().__init__(f"{where}: {message}")
 
 

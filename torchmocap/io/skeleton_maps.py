@@ -25,6 +25,7 @@ import difflib
 import fnmatch
 import functools
 import math
+import re
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from importlib import resources
@@ -246,35 +247,75 @@ def detect_family(
 
 def guess_joint_map(clip_or_names) -> dict[str, str]:
     """Best-effort human31 -> source names by exact (case-insensitive) match with any name the
-    built-in maps use for that joint; the human31 joints left out are the unmappable ones."""
+    built-in maps use for that joint, each source joint used once (so DAZ's ``head_top: head``
+    cannot turn a plain ``Head`` into the head top); the joints left out are unmappable."""
     names = _names_of(clip_or_names)
     low = {n.lower(): n for n in names}
-    out = {}
+    out: dict[str, str] = {}
     for h in HUMAN31_JOINTS:
         aliases = [h] + [_load_builtin(f).joints.get(h, "") for f in known_families()]
         for a in aliases:
-            if a and a.lower() in low:
-                out[h] = low[a.lower()]
+            src = low.get(a.lower()) if a else None
+            if src is not None and src not in out.values():  # one human31 joint per source
+                out[h] = src
                 break
     return out
 
 
-def _suggestions(h: str, names: Sequence[str]) -> list[str]:
+_SIDE_RE = re.compile(r"^(?:[Ll]eft|[Ll](?=[_A-Z.]))|[_.][Ll]$")
+_RSIDE_RE = re.compile(r"^(?:[Rr]ight|[Rr](?=[_A-Z.]))|[_.][Rr]$")
+
+
+def _side(name: str) -> str | None:
+    if _SIDE_RE.search(name):
+        return "l"
+    if _RSIDE_RE.search(name):
+        return "r"
+    return None
+
+
+def _norm(name: str) -> str:
+    n = re.sub(r"(?i)left", "l", re.sub(r"(?i)right", "r", name))
+    return re.sub(r"[^0-9a-z]", "", n.lower())
+
+
+def _name_score(alias: str, source: str) -> float:
+    """Similarity of a known spelling of a human31 joint and a source joint name."""
+    a, s = _norm(alias), _norm(source)
+    sa, ss = _side(alias), _side(source)
+    core = a[1:] if sa and a[:1] == sa else a
+    score = difflib.SequenceMatcher(None, a, s).ratio()
+    if core and core in s:
+        score += 0.5
+    if sa and ss and sa != ss:
+        score -= 1.0
+    return score
+
+
+def _suggestions(h: str, names: Sequence[str], taken: Iterable[str] = (), n: int = 3) -> list[str]:
+    taken = set(taken)
     aliases = {h} | {
         _load_builtin(f).joints[h] for f in known_families() if h in _load_builtin(f).joints
     }
-    found: list[str] = []
-    for a in sorted(aliases):
-        for s in _close(a, names):
-            if s not in found:
-                found.append(s)
-    return found[:3]
+    hs = h[0] if h[:2] in ("l_", "r_") else None
+    scored = []
+    for s in names:
+        if s in taken:
+            continue
+        sc = max(_name_score(a, s) for a in aliases)
+        if hs and _side(s) not in (None, hs):
+            sc -= 1.0
+        scored.append((sc, s))
+    scored.sort(key=lambda x: -x[0])
+    return [s for sc, s in scored[:n] if sc > 0.5]
 
 
-def _unmappable_error(names: Sequence[str], missing: Sequence[str], what: str) -> SkeletonMapError:
+def _unmappable_error(
+    names: Sequence[str], missing: Sequence[str], what: str, taken: Iterable[str] = ()
+) -> SkeletonMapError:
     lines = [f"{what}: cannot map {len(missing)} human31 joint(s): {list(missing)}"]
     for h in missing:
-        lines.append(f"  {h}: closest source joints {_suggestions(h, names) or '(none)'}")
+        lines.append(f"  {h}: closest source joints {_suggestions(h, names, taken) or '(none)'}")
     lines.append(
         "Write a skeleton map YAML (family, unit, detect, joints: {human31_name: source_name}; "
         "see docs/skeleton_maps.md) and pass it as skeleton_map=PATH."
@@ -314,11 +355,14 @@ def map_joints(clip, skeleton_map: str | Path | SkeletonMap | None = None) -> di
         guessed = guess_joint_map(clip)
         missing = [h for h in HUMAN31_JOINTS if h not in guessed]
         if missing:
-            raise _unmappable_error(names, missing, f"{what} (no skeleton map matches)")
+            raise _unmappable_error(
+                names, missing, f"{what} (no skeleton map matches)", guessed.values()
+            )
         return {h: names.index(guessed[h]) for h in HUMAN31_JOINTS}
     missing = [h for h in HUMAN31_JOINTS if smap.joints.get(h) not in names]
     if missing:
-        raise _unmappable_error(names, missing, f"{what} with map {smap.family!r}")
+        taken = [v for k, v in smap.joints.items() if k not in missing]
+        raise _unmappable_error(names, missing, f"{what} with map {smap.family!r}", taken)
     return {h: names.index(smap.joints[h]) for h in HUMAN31_JOINTS}
 
 
