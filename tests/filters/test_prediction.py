@@ -1,0 +1,305 @@
+"""Tests for torchmocap.filters.prediction (AR(3) pose prediction, SO(3) composition)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from torchmocap.filters.prediction import (
+    AutoregressivePredictor,
+    RotationGroup,
+    angles_from_matrix,
+    fit_ar3,
+    fit_rotation_increments,
+    predict_ar3,
+)
+from torchmocap.geometry import axis_angle_rotation, geodesic_angle, so3_exp, so3_log
+
+F64 = torch.float64
+
+
+def _axes_to_matrix(axes: torch.Tensor):
+    """Euler-type angles through three arbitrary unit axes: rot(a1,t1) rot(a2,t2) rot(a3,t3)."""
+
+    def to_matrix(t: torch.Tensor) -> torch.Tensor:
+        out = None
+        for j in range(3):
+            r = axis_angle_rotation(axes[j].to(t).expand(*t.shape[:-1], 3), t[..., j])
+            out = r if out is None else out @ r
+        return out
+
+    return to_matrix
+
+
+ZYX = _axes_to_matrix(torch.tensor([[0.0, 0, 1], [0, 1, 0], [1, 0, 0]], dtype=F64))
+
+
+class TestScalarModes:
+    def test_constant_acceleration_exact_on_quadratics(self):
+        """Exact for every polynomial of degree ≤ 2, batched over leading dims."""
+        g = torch.Generator().manual_seed(0)
+        c = torch.randn(4, 3, 5, generator=g, dtype=F64)  # (batch, coeff, D)
+        t = torch.arange(6, dtype=F64)
+        traj = c[:, None, 0] + c[:, None, 1] * t[:, None] + c[:, None, 2] * t[:, None] ** 2
+        pred = predict_ar3(traj[:, :5], "constant_acceleration")
+        assert pred.shape == (4, 5)
+        assert torch.allclose(pred, traj[:, 5], atol=1e-10)
+        # ... and not for a cubic (so the test can fail)
+        cubic = t**3
+        assert abs(float(predict_ar3(cubic[:5, None])) - 125.0) > 1
+
+    def test_uses_last_three(self):
+        h = torch.tensor([[100.0], [0.0], [1.0], [4.0]])
+        assert predict_ar3(h).item() == pytest.approx(9.0)
+
+    def test_damped(self):
+        h = torch.tensor([[0.0, 0.0], [1.0, 2.0], [3.0, 3.0]], dtype=F64)
+        lam1, lam2 = 0.7, 0.2
+        d1, d2 = h[2] - h[1], h[1] - h[0]
+        expect = h[2] + lam1 * d1 + lam2 * (d1 - d2)
+        assert torch.allclose(predict_ar3(h, "damped", damping=(lam1, lam2)), expect)
+        # (1, 1) is constant acceleration, (1, 0) constant velocity
+        assert torch.allclose(predict_ar3(h, "damped", damping=(1.0, 1.0)), predict_ar3(h))
+        lin = torch.tensor([[1.0], [3.0], [5.0]], dtype=F64)
+        assert predict_ar3(lin, "damped", damping=(1.0, 0.0)).item() == pytest.approx(7.0)
+
+    def test_least_squares_coefficients(self):
+        h = torch.randn(7, 3, 4, generator=torch.Generator().manual_seed(1), dtype=F64)
+        a = torch.randn(4, 3, generator=torch.Generator().manual_seed(2), dtype=F64)
+        expect = a[:, 0] * h[:, 2] + a[:, 1] * h[:, 1] + a[:, 2] * h[:, 0]
+        assert torch.allclose(predict_ar3(h, "least_squares", coefficients=a), expect)
+        shared = predict_ar3(h, "least_squares", coefficients=torch.tensor([3.0, -3.0, 1.0]))
+        assert torch.allclose(shared, predict_ar3(h))
+
+    def test_limits(self):
+        h = torch.tensor([[0.0, 0.0, 0.0], [1.0, -1.0, 0.1], [2.0, -2.0, 0.2]])
+        out = predict_ar3(h, lower=torch.tensor([-1.0, -1.0, -1.0]), upper=2.5)
+        assert torch.allclose(out, torch.tensor([2.5, -1.0, 0.3]))
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="history.*T >= 3"):
+            predict_ar3(torch.zeros(2, 4))
+        with pytest.raises(ValueError, match="history"):
+            predict_ar3(torch.zeros(4))
+        with pytest.raises(TypeError, match="history"):
+            predict_ar3(torch.zeros(3, 4, dtype=torch.int64))
+        with pytest.raises(ValueError, match="history.*finite"):
+            predict_ar3(torch.full((3, 2), float("nan")))
+        with pytest.raises(ValueError, match="mode"):
+            predict_ar3(torch.zeros(3, 2), "cubic")
+        with pytest.raises(ValueError, match="coefficients"):
+            predict_ar3(torch.zeros(3, 2), "least_squares")
+        with pytest.raises(ValueError, match="coefficients"):
+            predict_ar3(torch.zeros(3, 2), "least_squares", coefficients=torch.zeros(3, 3))
+        with pytest.raises(ValueError, match="rotation_groups"):
+            predict_ar3(torch.zeros(3, 4), rotation_groups=[(1, 2, 9)])
+        with pytest.raises(ValueError, match="rotation_groups"):
+            predict_ar3(torch.zeros(3, 6), rotation_groups=[(0, 1, 2), (2, 3, 4)])
+        with pytest.raises(ValueError, match="indices"):
+            RotationGroup((0, 0, 1))
+        with pytest.raises(ValueError, match="upper"):
+            predict_ar3(torch.zeros(3, 2), upper=torch.zeros(3))
+
+
+class TestLeastSquares:
+    def test_recovers_known_ar_coefficients(self):
+        """Synthetic AR(3) data with known per-DoF coefficients: recovered to 0.02."""
+        true = torch.tensor(
+            [[1.5, -0.6, 0.05], [2.2, -1.6, 0.38], [0.5, 0.2, 0.1]], dtype=F64
+        )  # stable
+        g = torch.Generator().manual_seed(3)
+        trajs = []
+        for _ in range(4):
+            x = torch.zeros(2000, 3, dtype=F64)
+            noise = torch.randn(2000, 3, generator=g, dtype=F64)
+            for t in range(3, 2000):
+                x[t] = true[:, 0] * x[t - 1] + true[:, 1] * x[t - 2] + true[:, 2] * x[t - 3]
+                x[t] += noise[t]
+            trajs.append(x)
+        coef = fit_ar3(trajs, ridge=0.0)
+        assert coef.shape == (3, 3)
+        assert torch.allclose(coef, true, atol=0.02), coef
+        # batched tensor input gives the same fit
+        assert torch.allclose(fit_ar3(torch.stack(trajs), ridge=0.0), coef)
+        # prediction with the fit beats constant acceleration on held-out data
+        h = trajs[0][-200:].unfold(0, 4, 1).permute(0, 2, 1)  # (197, 4, D) windows
+        ls = predict_ar3(h[:, :3], "least_squares", coefficients=coef)
+        ca = predict_ar3(h[:, :3])
+        assert (ls - h[:, 3]).pow(2).mean() < 0.5 * (ca - h[:, 3]).pow(2).mean()
+
+    def test_ridge_pulls_to_constant_position(self):
+        x = torch.randn(300, 2, generator=torch.Generator().manual_seed(4), dtype=F64)
+        coef = fit_ar3(x, ridge=1e6)
+        assert torch.allclose(coef, torch.tensor([[1.0, 0.0, 0.0]] * 2, dtype=F64), atol=1e-4)
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="trajectories"):
+            fit_ar3(torch.zeros(4, 2))
+        with pytest.raises(ValueError, match="trajectories"):
+            fit_ar3([])
+        with pytest.raises(ValueError, match="trajectories"):
+            fit_ar3([torch.zeros(10, 2), torch.zeros(10, 3)])
+        with pytest.raises(ValueError, match="trajectories"):
+            fit_ar3(torch.zeros(2, 2, 10, 2))
+        with pytest.raises(ValueError, match="ridge"):
+            fit_ar3(torch.zeros(10, 2), ridge=-1.0)
+
+    def test_module(self):
+        g = torch.Generator().manual_seed(5)
+        x = torch.cumsum(torch.randn(500, 6, generator=g, dtype=F64) * 0.05, 0)
+        p = AutoregressivePredictor.fit(x, rotation_groups=[(3, 4, 5)], upper=10.0)
+        assert p.mode == "least_squares"
+        h = x[100:103]
+        expect = predict_ar3(
+            h,
+            "least_squares",
+            coefficients=fit_ar3(x),
+            rotation_groups=[(3, 4, 5)],
+            rotation_coefficients=fit_rotation_increments(x, (3, 4, 5))[None],
+            upper=10.0,
+        )
+        assert torch.allclose(p(h), expect)
+        with pytest.raises(ValueError, match="coefficients"):
+            AutoregressivePredictor("least_squares")
+        with pytest.raises(ValueError, match="mode"):
+            AutoregressivePredictor("x")
+
+
+class TestRotations:
+    @pytest.mark.parametrize("mode", ["constant_acceleration", "damped"])
+    def test_rotation_vector_across_wrap(self, mode):
+        """Constant-rate rotation whose rotation vector wraps at π: SO(3) composition predicts
+        exactly; extrapolating the numbers fails."""
+        axis = torch.tensor([0.3, -0.5, 0.8], dtype=F64)
+        axis = axis / axis.norm()
+        angles = torch.tensor([2.7, 2.95, 3.2, 3.45], dtype=F64)  # 3.2 wraps to 3.2 − 2π
+        rv = so3_log(so3_exp(angles[:, None] * axis))  # as a tracker would store them
+        assert float(rv[2] @ axis) < 0  # the wrap happened in the history
+        hist = torch.cat([torch.zeros(3, 2, dtype=F64), rv[:3]], dim=1)  # D = 5, group 2..4
+        truth = so3_exp(angles[3] * axis)
+        damping = (1.0, 0.4)
+        pred = predict_ar3(hist, mode, damping=damping, rotation_groups=[(2, 3, 4)])
+        assert float(geodesic_angle(so3_exp(pred[2:]), truth)) < 1e-9
+        assert float(pred[2:].norm()) <= math.pi + 1e-9
+        naive = predict_ar3(hist, mode, damping=damping)
+        if mode == "damped":
+            assert float(geodesic_angle(so3_exp(naive[2:]), truth)) > 1.0
+        else:
+            # integer coefficients turn the 2π jump into 3·2π along the same axis: the same
+            # rotation by accident, but a vector of norm ≈ 15 rad that any limit would clamp
+            assert float(naive[2:].norm()) > 4 * math.pi
+        # body-frame composition also exact for a constant-rate rotation about a moving axis
+        r0 = so3_exp(torch.tensor([0.4, 1.0, -2.0], dtype=F64))
+        omega = torch.tensor([0.5, -0.9, 0.7], dtype=F64)
+        rs = r0 @ so3_exp(torch.arange(4, dtype=F64)[:, None] * omega)
+        pred = predict_ar3(so3_log(rs[:3]), rotation_groups=[(0, 1, 2)])
+        assert float(geodesic_angle(so3_exp(pred), rs[3])) < 1e-9
+
+    @pytest.mark.parametrize("mode", ["constant_acceleration", "damped"])
+    def test_euler_angles_across_wrap(self, mode):
+        """Root rotation as ZYX angles (wrapped to (−π, π] like a BVH): composed on SO(3) via a
+        to_matrix callback, predicted exactly (constant rate) where angle extrapolation fails."""
+        omega = torch.tensor([0.05, 0.02, 0.45], dtype=F64)  # mostly yaw, fast
+        r0 = Rotation.from_euler("ZYX", [2.4, 0.2, -0.1]).as_matrix()
+        rs = torch.tensor(r0) @ so3_exp(torch.arange(4, dtype=F64)[:, None] * omega)
+        eul = torch.tensor(Rotation.from_matrix(rs.numpy()).as_euler("ZYX"))
+        assert torch.allclose(ZYX(eul), rs, atol=1e-12)
+        yaw = eul[:, 0]
+        assert bool((yaw[1:] - yaw[:-1]).abs().max() > math.pi)  # wrap inside the window
+        hist = torch.cat([torch.randn(4, 3, dtype=F64), eul], dim=1)[:3]
+        group = RotationGroup((3, 4, 5), to_matrix=ZYX)
+        damping = (1.0, 0.4)  # any λ with λ1 = 1 is exact at constant rate
+        pred = predict_ar3(hist, mode, damping=damping, rotation_groups=[group])
+        assert float(geodesic_angle(ZYX(pred[3:]), rs[3])) < 1e-8
+        # continuous angles: nearest to the last ones, not re-wrapped
+        assert float((pred[3:] - hist[-1, 3:]).abs().max()) < 1.0
+        naive = predict_ar3(hist, mode, damping=damping)
+        if mode == "damped":
+            assert float(geodesic_angle(ZYX(naive[3:]), rs[3])) > 0.5
+        else:  # the 2π jump is tripled (same yaw by accident), the rest is not exact
+            assert float(naive[3].abs()) > 2 * math.pi
+            assert float(geodesic_angle(ZYX(naive[3:]), rs[3])) > 1e-2
+
+    def test_from_matrix_callback(self):
+        """A user-supplied inverse (here scipy's wrapped ZYX) is used and gets the reference."""
+        calls = []
+
+        def from_m(R, ref):
+            calls.append(ref.shape)
+            return torch.tensor(Rotation.from_matrix(R.numpy()).as_euler("ZYX"))
+
+        omega = torch.tensor([0.1, 0.0, 0.3], dtype=F64)
+        rs = so3_exp(torch.arange(4, dtype=F64)[:, None] * omega)
+        eul = torch.tensor(Rotation.from_matrix(rs.numpy()).as_euler("ZYX"))
+        group = RotationGroup((0, 1, 2), to_matrix=ZYX, from_matrix=from_m)
+        pred = predict_ar3(eul[:3], rotation_groups=[group])
+        assert calls == [(3,)]
+        assert float(geodesic_angle(ZYX(pred), rs[3])) < 1e-9
+
+    def test_batched_particles(self):
+        """(P, 3, D) histories of particles, each its own rotation."""
+        g = torch.Generator().manual_seed(6)
+        r0 = so3_exp(torch.randn(50, 3, generator=g, dtype=F64))
+        om = 0.3 * torch.randn(50, 3, generator=g, dtype=F64)
+        rs = r0[:, None] @ so3_exp(torch.arange(4, dtype=F64)[None, :, None] * om[:, None])
+        hist = so3_log(rs[:, :3])
+        pred = predict_ar3(hist, rotation_groups=[(0, 1, 2)])
+        assert pred.shape == (50, 3)
+        assert float(geodesic_angle(so3_exp(pred), rs[:, 3]).max()) < 1e-8
+
+    def test_angles_from_matrix(self):
+        """Generic inverse for non-orthogonal axes: exact rotation; the generating angles when
+        the reference is close (away from gimbal lock)."""
+        axes = torch.nn.functional.normalize(
+            torch.tensor([[0.0, 0.2, 1.0], [0.3, 1.0, 0.0], [1.0, 0.0, 0.1]], dtype=F64), dim=-1
+        )
+        tm = _axes_to_matrix(axes)
+        g = torch.Generator().manual_seed(7)
+        th = (torch.rand(500, 3, generator=g, dtype=F64) * 2 - 1) * 3
+        ref = th + 0.05 * torch.randn(500, 3, generator=g, dtype=F64)
+        out = angles_from_matrix(tm, tm(th), ref)
+        assert float(geodesic_angle(tm(out), tm(th)).max()) < 1e-9
+        # world axes of the joint; singular value → 0 at gimbal lock
+        r1 = axis_angle_rotation(axes[0].expand(500, 3), th[:, 0])
+        r2 = axis_angle_rotation(axes[1].expand(500, 3), th[:, 1])
+        w = torch.stack([axes[0].expand(500, 3), r1 @ axes[1], (r1 @ r2) @ axes[2]], -1)
+        ok = torch.linalg.svdvals(w)[:, -1] > 0.1
+        assert int(ok.sum()) > 400
+        assert torch.allclose(out[ok], th[ok], atol=1e-8)
+        # winding: reference near 2π + θ gives 2π + θ
+        out2 = angles_from_matrix(tm, tm(th[:5]), th[:5] + 2 * math.pi)
+        assert torch.allclose(out2, th[:5] + 2 * math.pi, atol=1e-8)
+        with pytest.raises(ValueError, match="reference"):
+            angles_from_matrix(tm, tm(th), th[:4])
+        with pytest.raises(ValueError, match="R"):
+            angles_from_matrix(tm, th, th)
+
+    def test_fit_rotation_increments(self):
+        """Body-frame increments generated by δ_t = u δ_{t−1} + v δ_{t−2} + noise: (u, v)
+        recovered; the fitted predictor beats constant acceleration."""
+        u, v = 1.3, -0.45
+        g = torch.Generator().manual_seed(8)
+        T = 3000
+        d = torch.zeros(T, 3, dtype=F64)
+        d[0] = d[1] = torch.tensor([0.05, -0.02, 0.03], dtype=F64)
+        noise = 0.01 * torch.randn(T, 3, generator=g, dtype=F64)
+        for t in range(2, T):
+            d[t] = u * d[t - 1] + v * d[t - 2] + noise[t]
+        R = [torch.eye(3, dtype=F64)]
+        steps = so3_exp(d)
+        for t in range(1, T):
+            R.append(R[-1] @ steps[t])
+        rv = so3_log(torch.stack(R))
+        eul = angles_seq = torch.tensor(
+            Rotation.from_matrix(torch.stack(R).numpy()).as_euler("ZYX")
+        )
+        del angles_seq
+        uv = fit_rotation_increments(rv, (0, 1, 2), ridge=0.0)
+        assert torch.allclose(uv, torch.tensor([u, v], dtype=F64), atol=0.03), uv
+        uv_e = fit_rotation_increments(eul, RotationGroup((0, 1, 2), to_matrix=ZYX), ridge=0.0)
+        assert torch.allclose(uv_e, uv, atol=1e-6)
+        with pytest.raises(ValueError, match="ridge"):
+            fit_rotation_increments(rv, (0, 1, 2), ridge=-1.0)
