@@ -218,3 +218,14 @@ class TestMeshExport:
         body = CapsuleBody(sk)
         with pytest.raises(ValueError, match="single pose"):
             body.to_trimesh(sk(sk.zero_pose((2,))))
+
+
+def test_device(device):
+    sk = human31().to(device)
+    body = CapsuleBody(sk).to(device)
+    kin = sk(sk.zero_pose((2,), dtype=F64, device=device))
+    pts = torch.randn(2, 5, 3, dtype=F64, device=device)
+    assert body.skin_distance(pts, kin).device.type == device.type
+    g = torch.Generator().manual_seed(0)  # a CPU generator works for data on any device
+    p, _, _ = body.sample_surface_points(kin, 10, g)
+    assert p.device.type == device.type

@@ -264,3 +264,10 @@ def test_build_script_reproduces_asset(tmp_path, makehuman_dir):
     bundled = SkinnedBody()
     assert rebuilt.num_vertices == bundled.num_vertices
     torch.testing.assert_close(rebuilt.joint_centres, bundled.joint_centres)
+
+
+def test_device(device):
+    sk = human31().to(device)
+    body = SkinnedBody().to(device)
+    v = body.pose_from_skeleton(sk, sk.zero_pose((2,), device=device))
+    assert v.device.type == device.type and v.shape == (2, body.num_vertices, 3)

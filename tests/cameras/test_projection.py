@@ -240,3 +240,12 @@ def test_rotation_helper_is_used_consistently():
     p = torch.randn(6, 3, generator=g, dtype=F64) * 0.2
     pc = torch.einsum("cij,nj->cni", R, p) + t[:, None]
     torch.testing.assert_close(rig(p), 500 * pc[..., :2] / pc[..., 2:] + 100)
+
+
+def test_device(device):
+    rig = _random_rig().to(device)
+    pts = _points().to(device)
+    pix, depth, vis = rig.project(pts)
+    assert pix.device.type == device.type and vis.device.type == device.type
+    o, d = rig.backproject(pix)
+    torch.testing.assert_close(o[:, 0].cpu(), rig.camera_centers().cpu())

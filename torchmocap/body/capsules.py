@@ -278,10 +278,12 @@ def sample_capsule_surface(endpoints: Tensor, radii: Tensor, n: int,
     length = _safe_norm(b - a)  # (M, B)
     cyl = 2 * math.pi * r * length
     sph = (4 * math.pi * r * r).expand_as(cyl)
-    probs = (cyl + sph).detach()
-    bone = torch.multinomial(probs, n, replacement=True, generator=generator)  # (M, n)
-    u01 = torch.rand(M, n, 3, generator=generator, dtype=dtype).to(device)
-    g = torch.randn(M, n, 3, generator=generator, dtype=dtype).to(device)
+    # random numbers are drawn on the generator's device, then moved to the data's
+    gdev = generator.device if generator is not None else device
+    probs = (cyl + sph).detach().to(gdev)
+    bone = torch.multinomial(probs, n, replacement=True, generator=generator).to(device)
+    u01 = torch.rand(M, n, 3, generator=generator, dtype=dtype, device=gdev).to(device)
+    g = torch.randn(M, n, 3, generator=generator, dtype=dtype, device=gdev).to(device)
     gather = lambda x: torch.gather(x, 1, bone.unsqueeze(-1).expand(M, n, x.shape[-1])) \
         if x.dim() == 3 else torch.gather(x, 1, bone)
     a_s, b_s = gather(a), gather(b)

@@ -103,8 +103,9 @@ def rotation_between(a: Tensor, b: Tensor) -> Tensor:
     anti = c < -1 + 1e-9
     R = eye + K + K @ K / (1 + c).clamp_min(1e-12)[..., None, None]
     if bool(anti.any()):
-        helper = torch.where((a[..., :1].abs() < 0.9), torch.tensor([1.0, 0, 0], dtype=a.dtype),
-                             torch.tensor([0.0, 1, 0], dtype=a.dtype))
+        ex = torch.tensor([1.0, 0, 0], dtype=a.dtype, device=a.device)
+        ey = torch.tensor([0.0, 1, 0], dtype=a.dtype, device=a.device)
+        helper = torch.where((a[..., :1].abs() < 0.9), ex, ey)
         u = torch.linalg.cross(a, helper)
         u = u / u.norm(dim=-1, keepdim=True)
         half = 2 * u[..., :, None] * u[..., None, :] - eye

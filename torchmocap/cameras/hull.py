@@ -40,7 +40,8 @@ class VisualHull:
     def centers(self, occupied_only: bool = True) -> Tensor:
         """``(M, 3)`` voxel centres (occupied ones by default)."""
         idx = self.occupancy.nonzero() if occupied_only else torch.stack(torch.meshgrid(
-            *[torch.arange(n) for n in self.occupancy.shape], indexing="ij"), -1).reshape(-1, 3)
+            *[torch.arange(n, device=self.occupancy.device) for n in self.occupancy.shape],
+            indexing="ij"), -1).reshape(-1, 3)
         return self.origin + idx.to(self.origin.dtype) * self.voxel_size
 
     def largest_component(self) -> VisualHull:
@@ -80,6 +81,7 @@ def _masks_tensor(masks: Tensor | Sequence[Tensor] | np.ndarray, rig: CameraRig)
     if bool((rig.image_size != rig.image_size[0]).any()) or m.shape[1:] != (H, W):
         raise CameraError(f"masks of shape {tuple(m.shape)} do not match the rig's image sizes "
                           f"{rig.image_size.tolist()} (width, height)")
+    m = m.to(rig.K.device)
     return m > 0 if m.dtype != torch.bool else m
 
 
@@ -117,12 +119,14 @@ def visual_hull(rig: CameraRig, masks: Tensor | Sequence[Tensor] | np.ndarray,
         raise CameraError(f"resolution must be positive, got {resolution}")
     n = torch.floor((b[:, 1] - b[:, 0]) / resolution).long().clamp_min(1)
     origin = b[:, 0] + resolution / 2
+    dev = rig.K.device
     axes = [origin[i] + torch.arange(int(n[i]), dtype=torch.float64) * resolution for i in range(3)]
+    axes = [a.to(dev) for a in axes]
     grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     H, W = m.shape[1:]
     flat = m.reshape(C, -1)
-    count = torch.empty(grid.shape[0], dtype=torch.int16)
-    cam_idx = torch.arange(C)[:, None]
+    count = torch.empty(grid.shape[0], dtype=torch.int16, device=dev)
+    cam_idx = torch.arange(C, device=dev)[:, None]
     with torch.no_grad():
         for s in range(0, grid.shape[0], chunk):
             pts = grid[s:s + chunk]
@@ -132,4 +136,4 @@ def visual_hull(rig: CameraRig, masks: Tensor | Sequence[Tensor] | np.ndarray,
             inside = flat[cam_idx, vi * W + ui] & vis
             count[s:s + chunk] = inside.sum(0).to(torch.int16)
     occ = (count >= need).reshape(*n.tolist())
-    return VisualHull(occ, origin, float(resolution))
+    return VisualHull(occ, origin.to(dev), float(resolution))
