@@ -15,6 +15,8 @@ from torchmocap.body import (
     capsule_endpoints,
     facing_camera,
     sample_capsule_surface,
+    segment_closest_points,
+    segment_distance,
 )
 from torchmocap.skeleton import Skeleton, human31
 
@@ -50,6 +52,17 @@ class TestCapsuleDistance:
                                                      dtype=F64))
         torch.testing.assert_close(capsule_distance(pts, e, r),
                                    torch.tensor([0.2, 0.1, 0.9], dtype=F64))
+
+    def test_feature_fast_segment_distance_matches_explicit(self):
+        g = torch.Generator().manual_seed(7)
+        ep = torch.randn(4, 6, 2, 3, generator=g, dtype=F64) + 2.0  # offset: cancellation test
+        pts = torch.randn(4, 50, 3, generator=g, dtype=F64) + 2.0
+        closest, s = segment_closest_points(pts, ep)
+        ref = (pts[..., :, None, :] - closest).norm(dim=-1)
+        torch.testing.assert_close(segment_distance(pts, ep), ref)
+        assert bool(((s > 0) & (s < 1)).any()) and bool((s == 0).any()) and bool((s == 1).any())
+        d32 = segment_distance(pts.float(), ep.float())
+        assert (d32.double() - ref).abs().max() < 2e-5
 
     def test_feature_camera_facing_half(self):
         e, r = _unit_capsule()

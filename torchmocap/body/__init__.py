@@ -11,6 +11,7 @@ from torchmocap.body.capsules import (
     facing_camera,
     sample_capsule_surface,
     segment_closest_points,
+    segment_distance,
 )
 from torchmocap.body.skinning import (
     HUMAN31_BONE_MAP,
@@ -38,4 +39,5 @@ __all__ = [
     "rotation_between",
     "sample_capsule_surface",
     "segment_closest_points",
+    "segment_distance",
 ]
