@@ -12,6 +12,8 @@ import torch
 from torchmocap.cameras import (
     CameraError,
     CameraRig,
+    estimate_up_direction,
+    make_ceiling_rig,
     make_ring_rig,
     read_bouguet_cal,
     read_bouguet_rig,
@@ -46,6 +48,19 @@ class TestBouguet:
         assert bool((rig.optical_axes()[:, 2] < -0.4).all())
         metres = read_bouguet_rig(bodytrack_calibs, unit="m")
         torch.testing.assert_close(metres.t, rig.t * 1000)
+
+    def test_feature_up_direction(self, bodytrack_calibs):
+        rig = read_bouguet_rig(bodytrack_calibs, unit="mm")
+        up = estimate_up_direction(rig)
+        angle = math.degrees(math.acos(float(up[2])))
+        assert angle < 2.0, up  # the bodytrack world is Z-up
+        for synth in (make_ring_rig(4), make_ceiling_rig(4), make_ring_rig(2)):
+            torch.testing.assert_close(estimate_up_direction(synth),
+                                       torch.tensor([0.0, 0, 1], dtype=F64), atol=1e-9, rtol=0)
+        # a rig mounted upside down in the world (z flipped) reports -z
+        flip = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=F64))  # rotation by pi about x
+        upside = CameraRig(rig.K, rig.R @ flip, rig.t, (640, 480), rig.dist)
+        assert float(estimate_up_direction(upside)[2]) < -0.99
 
     def test_exception_wrong_count(self, tmp_path):
         p = tmp_path / "bad.cal"

@@ -20,7 +20,13 @@ from torchmocap.cameras.projection import (
     project_points,
     world_to_camera,
 )
-from torchmocap.cameras.rig import CameraError, CameraRig, make_ceiling_rig, make_ring_rig
+from torchmocap.cameras.rig import (
+    CameraError,
+    CameraRig,
+    estimate_up_direction,
+    make_ceiling_rig,
+    make_ring_rig,
+)
 
 __all__ = [
     "UNITS",
@@ -30,6 +36,7 @@ __all__ = [
     "backproject_pixels",
     "camera_centers",
     "distort_normalized",
+    "estimate_up_direction",
     "intrinsics_matrix",
     "largest_component",
     "look_at",

@@ -15,7 +15,8 @@ from torchmocap.cameras.projection import (
     project_points,
 )
 
-__all__ = ["CameraError", "CameraRig", "make_ceiling_rig", "make_ring_rig"]
+__all__ = ["CameraError", "CameraRig", "estimate_up_direction", "make_ceiling_rig",
+           "make_ring_rig"]
 
 
 class CameraError(ValueError):
@@ -234,3 +235,36 @@ def make_ceiling_rig(num: int = 4, half_width: float = 2.0, height: float = 3.0,
     up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
     return _rig_from_eyes(eyes, tgt.expand(num, 3), image_size, fov_deg, up,
                           [f"ceiling{i}" for i in range(num)])
+
+
+def estimate_up_direction(rig: CameraRig) -> Tensor:
+    """World "up" of a calibration, from where its cameras are and where they look.
+
+    Assumes the usual capture set-up: cameras mounted at roughly equal heights around the
+    subject (so their centres span a horizontal plane) and tilted down. With ≥ 3 cameras the
+    up direction is the normal of the least-squares plane through the camera centres, signed so
+    that the mean optical axis points down; with fewer it is minus the mean optical axis's
+    component orthogonal to the baseline (a coarse guess).
+
+    For the bodytrack office calibration this gives (0.003, −0.006, 1.000) (0.4° from +z): the
+    world is Z-up in millimetres with the floor at z ≈ 0 and the cameras at 2.53–2.58 m.
+
+    Returns:
+        ``(3,)`` unit vector (float64).
+    """
+    c = rig.camera_centers().double()
+    axes = rig.optical_axes().double()
+    mean_axis = axes.mean(0)
+    if rig.num_cameras >= 3:
+        centred = c - c.mean(0)
+        _, S, Vh = torch.linalg.svd(centred)
+        n = Vh[-1]
+        if float(S[1]) < 1e-9:
+            raise CameraError("camera centres are collinear: the up direction is ambiguous")
+    else:
+        n = -mean_axis
+        if rig.num_cameras == 2:
+            base = (c[1] - c[0]) / (c[1] - c[0]).norm().clamp_min(1e-12)
+            n = n - (n @ base) * base
+    n = n / n.norm()
+    return -n if float(n @ mean_axis) > 0 else n
