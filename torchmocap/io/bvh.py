@@ -220,7 +220,7 @@ def _parse_motion(lines: list[str], start: int, n_channels: int, path: str):
         dt = float(m.group(1))
     except ValueError:
         raise MotionFormatError(f"frame time {m.group(1)!r} is not a number", path, ln_t) from None
-    if not (math.isfinite(dt) and dt > 0):
+    if not (math.isfinite(dt) and dt > 0 and math.isfinite(1.0 / dt)):
         raise MotionFormatError(f"frame time must be positive, got {m.group(1)}", path, ln_t)
     data = body[2:]
     if len(data) < n_frames:
@@ -232,29 +232,32 @@ def _parse_motion(lines: list[str], start: int, n_channels: int, path: str):
         raise MotionFormatError(
             f"header declares {n_frames} frames but more data lines follow", path, data[n_frames][0]
         )
-    tokens: list[str] = []
+    rows: list[list[float]] = []
     for ln, s in data:
         parts = s.split()
         if len(parts) != n_channels:
             raise MotionFormatError(
                 f"frame has {len(parts)} values, expected {n_channels} (one per channel)", path, ln
             )
-        tokens.extend(parts)
-    try:
-        values = np.array(tokens, dtype=np.float64).reshape(n_frames, n_channels)
-    except ValueError:
-        for ln, s in data:
-            for t in s.split():
-                try:
-                    float(t)
-                except ValueError:
-                    raise MotionFormatError(f"value {t!r} is not a number", path, ln) from None
-        raise  # pragma: no cover - numpy and float() disagree
+        try:
+            rows.append([float(t) for t in parts])
+        except ValueError:
+            bad_tok = next(t for t in parts if not _is_float(t))
+            raise MotionFormatError(f"value {bad_tok!r} is not a number", path, ln) from None
+    values = np.array(rows, dtype=np.float64).reshape(n_frames, n_channels)
     bad = ~np.isfinite(values).all(axis=1)
     if bad.any():
         k = int(np.argmax(bad))
         raise MotionFormatError("frame holds NaN or infinity", path, data[k][0])
     return values, _snap_fps(m.group(1), dt)
+
+
+def _is_float(t: str) -> bool:
+    try:
+        float(t)
+    except ValueError:
+        return False
+    return True
 
 
 def _snap_fps(text: str, dt: float) -> float:
