@@ -104,8 +104,11 @@ def visual_hull(rig: CameraRig, masks: Tensor | Sequence[Tensor] | np.ndarray,
         :class:`VisualHull` with the occupancy grid.
 
     Example:
-        >>> rig = make_ring_rig(4)          # doctest: +SKIP
-        >>> hull = visual_hull(rig, masks, [[-1, 1], [-1, 1], [0, 2]], 0.02).largest_component()
+        >>> from torchmocap.cameras import make_ring_rig
+        >>> masks = torch.ones(4, 240, 320, dtype=torch.bool)
+        >>> hull = visual_hull(make_ring_rig(4), masks, [[-0.5, 0.5], [-0.5, 0.5], [0, 2]], 0.1)
+        >>> hull.occupancy.shape
+        torch.Size([10, 10, 20])
     """
     m = _masks_tensor(masks, rig)
     C = rig.num_cameras
