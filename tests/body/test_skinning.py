@@ -215,6 +215,14 @@ class TestDrivenByHuman31:
         v = body.pose_from_skeleton(sk, th)
         assert v.shape == (3, 2, body.num_vertices, 3)
         torch.testing.assert_close(v[1, 1], body.pose_from_skeleton(sk, th[1, 1]))
+        # the cached binding follows offset changes of the same skeleton object
+        sk2 = human31()
+        v_before = body.pose_from_skeleton(sk2, sk2.zero_pose(dtype=F64))
+        with torch.no_grad():
+            sk2.offsets.mul_(0.9)
+        v_after = body.pose_from_skeleton(sk2, sk2.zero_pose(dtype=F64))
+        assert float(v_after[:, 2].max()) == pytest.approx(0.9 * float(v_before[:, 2].max()),
+                                                           abs=0.02)
         small = sk.with_bone_lengths(scale=0.8)
         vs = body.pose_from_skeleton(small, small.zero_pose(dtype=F64))
         assert float(vs[:, 2].max()) == pytest.approx(0.8 * 1.75, abs=0.03)

@@ -195,7 +195,7 @@ class SkinnedBody(nn.Module):
             self.register_buffer("bone_heads", torch.from_numpy(d["bone_heads"]))
             self.register_buffer("bone_tails", torch.from_numpy(d["bone_tails"]))
             self.register_buffer("joint_centres", torch.from_numpy(d["joint_centres"]))
-        self._bindings: dict[int, tuple[Any, SkeletonBinding]] = {}
+        self._bindings: dict[int, tuple[Any, SkeletonBinding, Tensor]] = {}
 
     # ------------------------------------------------------------------ basics
     @property
@@ -307,6 +307,7 @@ class SkinnedBody(nn.Module):
         key = id(skeleton)
         cached = self._bindings.get(key)
         if cached is None or cached[0] is not skeleton or \
+                cached[1].weights.device != self.vertices.device or \
                 not torch.equal(cached[2], skeleton.offsets.detach().cpu()):
             cached = (skeleton, self.bind(skeleton), skeleton.offsets.detach().cpu().clone())
             self._bindings[key] = cached
