@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
@@ -15,7 +13,6 @@ from torchmocap.skeleton import human31
 from torchmocap.viz import capsule_outlines, overlay_on_image, plot_skeleton_sequence, side_colors
 
 F64 = torch.float64
-SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 
 
 @pytest.fixture(scope="module")
@@ -93,10 +90,8 @@ class TestOverlay:
         p = img[v + 10, u]
         assert p[1] > p[0] + 10 and p[2] > p[0] + 10
 
-    def test_feature_real_frame(self, tmp_path):
-        cal = SHARED / "multiview" / "bodytrack_sequenceB_1"
-        if not (cal / "CALIB" / "Camera1.cal").exists():
-            pytest.skip("shared data missing")
+    def test_feature_real_frame(self, tmp_path, bodytrack_dir):
+        cal = bodytrack_dir
         rig = read_bouguet_rig([cal / "CALIB" / f"Camera{i}.cal" for i in range(1, 5)], "mm")
         image = np.array(Image.open(cal / "CAM2" / "image0000.bmp"))
         mask = np.array(Image.open(cal / "FG2" / "image0000.bmp"))
