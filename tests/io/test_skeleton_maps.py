@@ -18,6 +18,7 @@ from torchmocap.io import (
     map_joints,
     read_bvh,
     unmapped_joints,
+    write_bvh,
 )
 from torchmocap.skeleton import human31
 
@@ -102,7 +103,10 @@ def test_unknown_skeleton_error_lists_joints_and_suggestions(walk):
     assert guess_joint_map(odd)["r_knee"] == "RightKnee"
 
 
-def test_user_map_yaml(walk, tmp_path):
+def test_user_map_yaml(walk, tmp_path, monkeypatch):
+    from torchmocap.io import skeleton_maps
+
+    monkeypatch.setattr(skeleton_maps, "_USER_MAPS", {})
     odd = _renamed(walk, {"LeftKnee": "L_Knee_jnt", "Head_end": "HeadTop_tip",
                           "LeftToe": "lToe_j"})
     joints = dict(load_skeleton_map("cmu_max").joints)
@@ -117,6 +121,16 @@ def test_user_map_yaml(walk, tmp_path):
     assert detect_family(odd, maps=[path]) == "my_rig"
     assert unmapped_joints(odd, path) == []
     assert chain_height(odd, path) == pytest.approx(chain_height(walk))
+    # a BVH read with the map takes its unit and family; the family name resolves afterwards
+    bvh = write_bvh(tmp_path / "odd.bvh", odd, unit=0.0564444)
+    clip = read_bvh(bvh, skeleton_map=path)
+    assert clip.skeleton_family == "my_rig" and clip.unit == 0.0564444
+    assert chain_height(clip) == pytest.approx(chain_height(walk), abs=1e-6)
+    assert detect_family(read_bvh(bvh, unit=1.0)) == "my_rig"  # remembered for detection
+    clash = tmp_path / "clash.yaml"
+    clash.write_text("family: cmu_mb\njoints: {l_knee: A}\n")
+    with pytest.raises(SkeletonMapError, match="built-in"):
+        load_skeleton_map(clash)
 
 
 @pytest.mark.parametrize("text, match", [

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -117,12 +118,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("path", help="motion (.bvh, .amc, .asf) or camera (.cal, .json, .yaml)")
     parser.add_argument("--asf", default=None, help="ASF skeleton of an AMC file")
     args = parser.parse_args(argv)
-    try:
-        out = describe(args.path, asf=args.asf)
-    except Exception as e:  # noqa: BLE001 - any failure is reported as one line, exit 2
-        msg = " ".join(str(e).split()) or type(e).__name__
-        print(f"torchmocap-info: error: {msg}", file=sys.stderr)
-        return 2
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            out = describe(args.path, asf=args.asf)
+        except Exception as e:  # noqa: BLE001 - any failure is reported as one line, exit 2
+            msg = " ".join(str(e).split()) or type(e).__name__
+            print(f"torchmocap-info: error: {msg}", file=sys.stderr)
+            return 2
+    for w in caught:
+        print(f"torchmocap-info: warning: {' '.join(str(w.message).split())}", file=sys.stderr)
     try:
         print(json.dumps(out, indent=2))
         sys.stdout.flush()

@@ -276,9 +276,9 @@ def parse_bvh(text: str, path: str = "<bvh>") -> tuple[list[_Joint], np.ndarray,
     """Parse BVH text into joints, the ``(T, C)`` channel values and the frame rate (fps)."""
     lines = text.splitlines()
     motion = next((i for i, s in enumerate(lines) if s.strip().upper() == "MOTION"), None)
+    joints = _parse_hierarchy(lines if motion is None else lines[:motion], path)
     if motion is None:
         raise MotionFormatError("missing MOTION section", path, len(lines))
-    joints = _parse_hierarchy(lines[:motion], path)
     n_channels = sum(len(j.channels) for j in joints)
     if n_channels == 0:
         raise MotionFormatError("the hierarchy has no channels", path, motion + 1)

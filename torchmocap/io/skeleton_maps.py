@@ -104,6 +104,10 @@ class SkeletonMap:
         return True
 
 
+#: user maps loaded from YAML paths in this session, by family name
+_USER_MAPS: dict[str, SkeletonMap] = {}
+
+
 def _builtin_dir():
     return resources.files("torchmocap") / "conf" / "skeleton_map"
 
@@ -190,6 +194,9 @@ def _load_builtin(name: str) -> SkeletonMap:
 def load_skeleton_map(name_or_path: str | Path | SkeletonMap) -> SkeletonMap:
     """A built-in map by family name (``"cmu_mb"``), or a user map from a YAML path.
 
+    A user map loaded from a path is remembered under its family name for this session, so
+    clips read with it (``clip.skeleton_family``) resolve it again by name.
+
     Raises:
         SkeletonMapError: unknown name, unreadable or malformed YAML.
     """
@@ -198,13 +205,21 @@ def load_skeleton_map(name_or_path: str | Path | SkeletonMap) -> SkeletonMap:
     s = str(name_or_path)
     if s in known_families():
         return _load_builtin(s)
+    if s in _USER_MAPS:
+        return _USER_MAPS[s]
     p = Path(s)
     if p.suffix.lower() in (".yaml", ".yml") or p.exists():
         try:
             text = p.read_text(encoding="utf-8")
         except OSError as e:
             raise SkeletonMapError(f"{p}: cannot read skeleton map ({e.strerror or e})") from None
-        return _parse_map(_read_yaml(text, str(p)), str(p))
+        m = _parse_map(_read_yaml(text, str(p)), str(p))
+        if m.family in known_families():
+            raise SkeletonMapError(
+                f"{p}: family {m.family!r} is a built-in map's name; choose another name"
+            )
+        _USER_MAPS[m.family] = m  # later lookups by family name (clip.skeleton_family) find it
+        return m
     raise SkeletonMapError(
         f"unknown skeleton map {s!r}; built-in families: {known_families()} "
         "(or pass the path of a map YAML, see docs/skeleton_maps.md)"
@@ -226,7 +241,8 @@ def detect_family(
     Args:
         clip_or_names: a :class:`MotionClip` (its format and path are used) or joint names.
         source_format, path: for plain names: file format (``"bvh"``/``"asf"``) and file path.
-        maps: extra (user) maps to consider beside the built-in ones; they win ties.
+        maps: extra (user) maps to consider beside the built-in ones; they win ties. Maps
+            loaded earlier from a YAML path in this session are considered too.
 
     Specificity: a map whose ``filename_pattern`` matched beats one without, then the longer
     ``detect`` list wins (the CMU MotionBuilder map lists more names than CMU21's, which are a
@@ -236,6 +252,7 @@ def detect_family(
     source_format = source_format or getattr(clip_or_names, "source_format", None)
     path = path or getattr(clip_or_names, "source_path", None)
     candidates = [load_skeleton_map(m) for m in maps] + [_load_builtin(f) for f in known_families()]
+    candidates += [m for m in _USER_MAPS.values() if m not in candidates]
     best, best_key = None, None
     for rank, m in enumerate(candidates):
         if m.matches(names, source_format, path):
