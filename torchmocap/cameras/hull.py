@@ -48,6 +48,34 @@ class VisualHull:
         """The hull restricted to its largest 26-connected component."""
         return VisualHull(largest_component(self.occupancy), self.origin, self.voxel_size)
 
+    def silhouettes(self, rig: CameraRig) -> Tensor:
+        """Render the occupied voxels into every view: ``(C, H, W)`` bool masks.
+
+        Each voxel centre is projected (with distortion) and splatted as a square of half-width
+        ``ceil(f · voxel_size / (2 · depth))`` pixels, the image of the voxel's cube; comparing
+        with the input masks (IoU) measures how consistent calibration and silhouettes are.
+        """
+        W, H = (int(v) for v in rig.image_size[0])
+        C = rig.num_cameras
+        out = torch.zeros(C, H * W, dtype=torch.bool, device=self.occupancy.device)
+        c = self.centers()
+        if c.shape[0] == 0:
+            return out.reshape(C, H, W)
+        with torch.no_grad():
+            pix, depth, vis = rig.project(c.to(rig.K.dtype))
+        f = rig.K[:, 0, 0, None].to(depth.dtype)
+        half = torch.ceil(f * self.voxel_size / (2 * depth.clamp_min(1e-6))).long().clamp(0, 8)
+        u0, v0 = pix[..., 0].round().long(), pix[..., 1].round().long()
+        cam = torch.arange(C, device=out.device)[:, None].expand_as(u0)
+        kmax = int(half[vis].max()) if bool(vis.any()) else 0
+        for dv in range(-kmax, kmax + 1):
+            for du in range(-kmax, kmax + 1):
+                u, v = u0 + du, v0 + dv
+                ok = vis & (half >= max(abs(du), abs(dv))) & (u >= 0) & (u < W) & (v >= 0) & \
+                    (v < H)
+                out[cam[ok], (v * W + u)[ok]] = True
+        return out.reshape(C, H, W)
+
     def extent(self) -> tuple[Tensor, Tensor]:
         """``(min, max)`` corners ``(3,)`` of the occupied voxels' cubes (metres)."""
         c = self.centers()
