@@ -15,6 +15,7 @@ from torchmocap.filters.prediction import (
     fit_ar3,
     fit_rotation_increments,
     predict_ar3,
+    skeleton_rotation_groups,
 )
 from torchmocap.geometry import axis_angle_rotation, geodesic_angle, so3_exp, so3_log
 
@@ -303,3 +304,50 @@ class TestRotations:
         assert torch.allclose(uv_e, uv, atol=1e-6)
         with pytest.raises(ValueError, match="ridge"):
             fit_rotation_increments(rv, (0, 1, 2), ridge=-1.0)
+
+
+class TestSkeleton:
+    def test_root_group_human31(self):
+        """Root rotation of human31 (3 angles through its root axes), constant-rate yaw that
+        wraps past ±π: composed prediction matches the FK root rotation."""
+        skeleton_mod = pytest.importorskip("torchmocap.skeleton")
+        sk = skeleton_mod.human31().to(dtype=F64)
+        (group,) = skeleton_rotation_groups(sk)
+        assert group.indices == (3, 4, 5)
+        g = torch.Generator().manual_seed(9)
+        theta = torch.zeros(4, sk.num_dofs, dtype=F64)
+        omega = torch.tensor([0.02, -0.03, 0.5], dtype=F64)
+        r0 = so3_exp(torch.tensor([0.1, 0.05, 2.9], dtype=F64))
+        rs = r0 @ so3_exp(torch.arange(4, dtype=F64)[:, None] * omega)
+        ref = torch.zeros(3, dtype=F64)
+        for t in range(4):  # angles wrapped into (−π, π] as a BVH reader would give them
+            ang = angles_from_matrix(group.to_matrix, rs[t], ref)
+            ang = torch.remainder(ang + math.pi, 2 * math.pi) - math.pi
+            theta[t, 3:6] = ang
+            ref = ang
+        assert float((theta[1:, 3] - theta[:-1, 3]).abs().max()) > math.pi  # yaw wrapped
+        theta[:, 6:] = 0.01 * torch.randn(4, sk.num_dofs - 6, generator=g, dtype=F64)
+        root_rot = sk(theta).rotations[:, 0]
+        assert torch.allclose(root_rot, rs, atol=1e-9)
+        pred = predict_ar3(theta[:3], rotation_groups=[group], lower=sk.lower, upper=sk.upper)
+        got = sk(pred[None]).rotations[0, 0]
+        assert float(geodesic_angle(got, rs[3])) < 1e-8
+        naive = predict_ar3(theta[:3], "damped", damping=(1.0, 0.3))
+        assert float(geodesic_angle(sk(naive[None]).rotations[0, 0], rs[3])) > 0.1
+
+    def test_from_axes(self):
+        group = RotationGroup.from_axes((0, 1, 2), [[0, 0, 2.0], [0, 1, 0], [1, 0, 0]])
+        t = torch.tensor([0.3, -0.2, 1.1], dtype=F64)
+        assert torch.allclose(group.matrix(t), ZYX(t))
+        with pytest.raises(ValueError, match="axes"):
+            RotationGroup.from_axes((0, 1, 2), [[0, 0, 0.0], [0, 1, 0], [1, 0, 0]])
+        with pytest.raises(ValueError, match="axes"):
+            RotationGroup.from_axes((0, 1, 2), [[0, 0, 1.0], [0, 1, 0]])
+
+    def test_exception(self):
+        skeleton_mod = pytest.importorskip("torchmocap.skeleton")
+        sk = skeleton_mod.human31()
+        with pytest.raises(ValueError, match="joints.*l_elbow"):
+            skeleton_rotation_groups(sk, ["l_elbow"])
+        groups = skeleton_rotation_groups(sk, ["pelvis", "l_hip"])
+        assert groups[1].indices == tuple(sk.joint_dofs("l_hip"))

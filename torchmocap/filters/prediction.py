@@ -36,10 +36,11 @@ from dataclasses import dataclass
 
 import torch
 
-from torchmocap.geometry import so3_exp, so3_log
+from torchmocap.geometry import axis_angle_rotation, so3_exp, so3_log
 
 __all__ = [
     "RotationGroup",
+    "skeleton_rotation_groups",
     "AutoregressivePredictor",
     "predict_ar3",
     "fit_ar3",
@@ -149,6 +150,30 @@ class RotationGroup:
             raise ValueError(f"indices: expected three distinct indices, got {self.indices!r}")
         object.__setattr__(self, "indices", idx)
 
+    @classmethod
+    def from_axes(
+        cls, indices: Sequence[int], axes: torch.Tensor | Sequence[Sequence[float]]
+    ) -> RotationGroup:
+        """Angles through three unit axes ``(3, 3)`` (rows), composed as in the Skeleton:
+        ``rot(a1, t1) @ rot(a2, t2) @ rot(a3, t3)``; inverse by :func:`angles_from_matrix`."""
+        ax = torch.as_tensor(axes, dtype=torch.float64)
+        if ax.shape != (3, 3) or not bool(torch.isfinite(ax).all()):
+            raise ValueError(
+                f"axes: expected three finite axes, shape (3, 3), got {tuple(ax.shape)}"
+            )
+        if bool((ax.norm(dim=-1) < 1e-12).any()):
+            raise ValueError("axes: zero-length axis")
+        ax = ax / ax.norm(dim=-1, keepdim=True)
+
+        def to_matrix(t: torch.Tensor) -> torch.Tensor:
+            a = ax.to(dtype=t.dtype, device=t.device)
+            out = axis_angle_rotation(a[0].expand(*t.shape[:-1], 3), t[..., 0])
+            for j in (1, 2):
+                out = out @ axis_angle_rotation(a[j].expand(*t.shape[:-1], 3), t[..., j])
+            return out
+
+        return cls(tuple(indices), to_matrix=to_matrix)
+
     def matrix(self, x: torch.Tensor) -> torch.Tensor:
         """``(..., 3) -> (..., 3, 3)``."""
         return so3_exp(x) if self.to_matrix is None else self.to_matrix(x)
@@ -160,6 +185,28 @@ class RotationGroup:
         if self.to_matrix is None:
             return _rotvec_from_matrix(R, reference)
         return angles_from_matrix(self.to_matrix, R, reference)
+
+
+def skeleton_rotation_groups(skeleton, joints: Sequence[str] | None = None) -> list[RotationGroup]:
+    """Rotation groups for 3-axis joints of a ``torchmocap.skeleton.Skeleton`` (duck-typed: uses
+    ``joint_names``, ``joint_axes``, ``joint_dofs`` and ``rotation_dofs``).
+
+    Args:
+        skeleton: the tracking skeleton.
+        joints: joint names (each must have exactly 3 axes); default: the root only — the joint
+            whose rotation is unlimited and may wrap.
+    """
+    names = [skeleton.joint_names[0]] if joints is None else list(joints)
+    rot = set(skeleton.rotation_dofs)
+    out = []
+    for name in names:
+        j = skeleton.joint_index(name)
+        axes = skeleton.joint_axes[j]
+        if len(axes) != 3:
+            raise ValueError(f"joints: {name!r} has {len(axes)} axes; a rotation group needs 3")
+        idx = [i for i in skeleton.joint_dofs(name) if i in rot]
+        out.append(RotationGroup.from_axes(idx, axes))
+    return out
 
 
 def _as_groups(groups) -> tuple[RotationGroup, ...]:
