@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import warnings
 
 import pytest
 import torch
@@ -210,10 +211,15 @@ class TestFromSkeleton:
         theta[:, 3:] = (torch.rand(12, sk.num_dofs - 3, generator=gen, dtype=torch.float64) - .5)
         theta[:, :3] = torch.tensor([0.1, -0.2, 0.0], dtype=torch.float64)
         clip = MotionClip.from_skeleton(sk, theta, fps=30)
-        assert clip.joint_names == sk.joint_names
+        assert clip.joint_names == sk.joint_names and clip.skeleton_family == "human31"
         assert (clip.global_positions() - sk(theta).positions).abs().max() < 1e-10
-        out = write_bvh(tmp_path / "track.bvh", clip, unit=0.01)
-        back = read_bvh(out, unit=0.01)
+        out = write_bvh(tmp_path / "track.bvh", clip)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # family and unit (metres) are recognised
+            back = read_bvh(out)
+        assert back.skeleton_family == "human31" and back.unit == 1.0
+        cm = read_bvh(write_bvh(tmp_path / "cm.bvh", clip, unit=0.01), unit=0.01)
+        assert (cm.global_positions() - back.global_positions()).abs().max() < 1e-6
         idx = [back.joint_index(n) for n in clip.joint_names]  # human31 names survive
         assert (back.global_positions()[:, idx] - sk(theta).positions).abs().max() < 1e-6
         assert back.fps == 30
@@ -222,3 +228,13 @@ class TestFromSkeleton:
         sk = human31()
         with pytest.raises(ValueError, match="theta"):
             MotionClip.from_skeleton(sk, torch.zeros(3, 5), fps=30)
+
+
+def test_to_dtype_device(walk, device):
+    clip = walk.slice(0, 5).to(torch.float32, device)
+    assert clip.rotations.dtype == torch.float32 and clip.rotations.device.type == device.type
+    p = clip.global_positions()
+    assert p.dtype == torch.float32 and p.device.type == device.type
+    assert (p.cpu().double() - walk.slice(0, 5).global_positions()).abs().max() < 1e-4
+    r = clip.resample(60)
+    assert r.num_frames == 3 and r.rotations.device.type == device.type

@@ -22,7 +22,7 @@ from torchmocap.io import (
 )
 from torchmocap.skeleton import human31
 
-FAMILIES = ["cmu21", "cmu_asf", "cmu_max", "cmu_mb", "daz43", "hdm05_asf"]
+FAMILIES = ["cmu21", "cmu_asf", "cmu_max", "cmu_mb", "daz43", "hdm05_asf", "human31"]
 
 
 def test_human31_names_match_core_preset():

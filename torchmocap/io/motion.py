@@ -191,7 +191,7 @@ class MotionClip:
         sk = Skeleton.from_dict(
             {"name": name or (self.skeleton_family or "motion_clip"), "joints": joints}
         )
-        sk = sk.to(dtype=self.offsets.dtype)
+        sk = sk.to(dtype=self.offsets.dtype, device=self.offsets.device)
         order = [self.joint_names.index(n) for n in sk.joint_names]
         parts = [self.root_translation]
         for j in order:
@@ -225,7 +225,9 @@ class MotionClip:
         """Clip of a core Skeleton driven by ``theta (T, D)`` (e.g. a human31 track, to write).
 
         Local rotations come from the skeleton's own FK (``L_j = R_parent^T R_j``), so any
-        axis layout is carried over; the root must have translational DoF.
+        axis layout is carried over; the root must have translational DoF. ``skeleton_family``
+        defaults to the detected one (``"human31"`` for the preset), so :func:`write_bvh` writes
+        metres and reading the file back needs no ``unit``.
         """
         if theta.dim() != 2 or theta.shape[-1] != skeleton.num_dofs:
             raise ValueError(
@@ -242,6 +244,10 @@ class MotionClip:
             if p >= 0:
                 local[:, j] = Rg[:, p].transpose(-1, -2) @ Rg[:, j]
         axes = [torch.tensor(a, dtype=theta.dtype).reshape(-1, 3) for a in skeleton.joint_axes]
+        if skeleton_family is None:
+            from torchmocap.io.skeleton_maps import detect_family
+
+            skeleton_family = detect_family(list(skeleton.joint_names))
         return cls(
             joint_names=list(skeleton.joint_names),
             parents=parents,
@@ -255,15 +261,19 @@ class MotionClip:
         )
 
     # ------------------------------------------------------------------ editing
-    def to(self, dtype: torch.dtype) -> MotionClip:
-        """Copy with every tensor cast to ``dtype``."""
+    def to(self, dtype: torch.dtype | None = None, device=None) -> MotionClip:
+        """Copy with every tensor cast to ``dtype`` and/or moved to ``device``."""
+
+        def mv(t: torch.Tensor) -> torch.Tensor:
+            return t.to(device=device, dtype=dtype)
+
         return replace(
             self,
-            offsets=self.offsets.to(dtype),
-            rotations=self.rotations.to(dtype),
-            root_translation=self.root_translation.to(dtype),
-            axes=[a.to(dtype) for a in self.axes],
-            local_translations={k: v.to(dtype) for k, v in self.local_translations.items()},
+            offsets=mv(self.offsets),
+            rotations=mv(self.rotations),
+            root_translation=mv(self.root_translation),
+            axes=[mv(a) for a in self.axes],
+            local_translations={k: mv(v) for k, v in self.local_translations.items()},
         )
 
     def slice(self, start: int | None = None, stop: int | None = None) -> MotionClip:
@@ -294,7 +304,7 @@ class MotionClip:
         T = self.num_frames
         n_new = int(math.floor((T - 1) * fps / self.fps + 1e-9)) + 1
         dtype = self.rotations.dtype
-        u = torch.arange(n_new, dtype=dtype) * (self.fps / fps)
+        u = torch.arange(n_new, dtype=dtype, device=self.rotations.device) * (self.fps / fps)
         i0 = u.floor().long().clamp(0, max(T - 2, 0))
         i1 = (i0 + 1).clamp(max=T - 1)
         w = (u - i0.to(dtype)).clamp(0, 1)
