@@ -455,6 +455,7 @@ def write_bvh(
     from torchmocap.io.skeleton_maps import known_families, load_skeleton_map
 
     path = Path(path)
+    clip = clip.to(device="cpu")
     if unit is None:
         unit = 1.0
         if clip.skeleton_family in known_families():

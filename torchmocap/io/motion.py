@@ -62,8 +62,9 @@ class MotionClip:
         channels: optional per-joint BVH channel names (kept so a written BVH keeps the order).
 
     Example:
-        >>> clip = read_bvh("walk.bvh")                     # doctest: +SKIP
-        >>> clip.global_positions().shape                   # doctest: +SKIP
+        >>> from torchmocap.io import bundled_clip_path, read_bvh
+        >>> clip = read_bvh(bundled_clip_path())  # 4 s of CMU 131_01, 3dsMax-style BVH
+        >>> clip.global_positions().shape
         torch.Size([480, 38, 3])
     """
 
@@ -330,14 +331,6 @@ class MotionClip:
         rot = self.rotations.clone()
         rot[:, j] = angles_to_matrix(angles.to(rot.dtype), self.axes[j])
         return replace(self, rotations=rot)
-
-    def subtree(self, j: int) -> list[int]:
-        """Joint ``j`` and all its descendants (indices in joint order)."""
-        out = {j}
-        for c in range(j + 1, self.num_joints):
-            if self.parents[c] in out:
-                out.add(c)
-        return sorted(out)
 
     def path_between(self, a: int, b: int) -> list[int]:
         """Joints on the tree path from ``a`` to ``b`` (both included)."""
