@@ -165,3 +165,13 @@ def test_chain_height_sides(cmu):
     assert chain_height(clip, side="right") == pytest.approx(right, abs=1e-9)
     with pytest.raises(ValueError, match="side"):
         chain_height(clip, side="middle")
+
+
+def test_resolve_and_explicit_map_for_amc(cmu):
+    from torchmocap.io import load_motion, resolve_skeleton_map
+
+    clip = load_motion(cmu / "01_01.amc", skeleton_map="hdm05_asf").slice(0, 2)
+    assert clip.skeleton_family == "hdm05_asf"  # the caller's label wins over detection
+    assert resolve_skeleton_map(clip).family == "hdm05_asf"
+    assert resolve_skeleton_map(clip, "cmu_asf").family == "cmu_asf"
+    assert resolve_skeleton_map(["a", "b"]) is None

@@ -15,6 +15,7 @@ from torchmocap.io.skeleton_maps import (
     known_families,
     load_skeleton_map,
     map_joints,
+    resolve_skeleton_map,
     unmapped_joints,
 )
 
@@ -40,6 +41,7 @@ __all__ = [
     "load_skeleton_map",
     "map_joints",
     "read_bvh",
+    "resolve_skeleton_map",
     "unmapped_joints",
     "write_bvh",
 ]

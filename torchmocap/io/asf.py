@@ -467,6 +467,7 @@ def read_amc(
     fps: float = 120.0,
     skip_frames: int = 0,
     unit: float | None = None,
+    skeleton_map: str | Path | None = None,
     dtype: torch.dtype = torch.float64,
 ) -> MotionClip:
     """Read an AMC motion with its ASF skeleton into a Z-up, metre :class:`MotionClip`.
@@ -477,6 +478,7 @@ def read_amc(
         fps: frame rate (AMC files do not store it; CMU and HDM05 record at 120).
         skip_frames: drop this many leading frames.
         unit: metres per length unit, overriding the ASF ``:units`` (rarely needed).
+        skeleton_map: family name or map YAML to label the clip with instead of detection.
 
     Raises:
         MotionFormatError: malformed AMC, or an AMC that does not match the ASF (unknown bone,
@@ -494,6 +496,10 @@ def read_amc(
     root_vals = root_vals[skip_frames:]
     bone_vals = {b: v[skip_frames:] for b, v in bone_vals.items()}
     clip = _build_clip(asf, root_vals, bone_vals, fps, float(unit or asf.unit), path)
+    if skeleton_map is not None:
+        from torchmocap.io.skeleton_maps import load_skeleton_map
+
+        clip.skeleton_family = load_skeleton_map(skeleton_map).family
     return clip.to(dtype) if dtype != torch.float64 else clip
 
 

@@ -46,7 +46,8 @@ def load_motion(
         unit: metres per file length unit (default: from the file or its skeleton map).
         skip_frames: leading frames to drop (e.g. 1 for the cgspeed CMU MotionBuilder T-pose).
         fps: frame rate of an AMC (default 120); ignored for BVH (the file states it).
-        skeleton_map: family name or map YAML for BVH files (default: auto-detected).
+        skeleton_map: family name or map YAML (default: auto-detected); for BVH it also
+            supplies the length unit.
     """
     from torchmocap.io.asf import read_amc, read_asf
     from torchmocap.io.bvh import read_bvh
@@ -57,9 +58,21 @@ def load_motion(
         return read_bvh(path, unit=unit, skip_frames=skip_frames, skeleton_map=skeleton_map)
     if suffix == ".amc":
         asf_path = Path(asf) if asf is not None else find_asf(path)
-        return read_amc(path, asf_path, fps=fps or 120.0, skip_frames=skip_frames, unit=unit)
+        return read_amc(
+            path,
+            asf_path,
+            fps=fps or 120.0,
+            skip_frames=skip_frames,
+            unit=unit,
+            skeleton_map=skeleton_map,
+        )
     if suffix == ".asf":
-        return read_asf(path).rest_clip(unit)
+        clip = read_asf(path).rest_clip(unit)
+        if skeleton_map is not None:
+            from torchmocap.io.skeleton_maps import load_skeleton_map
+
+            clip.skeleton_family = load_skeleton_map(skeleton_map).family
+        return clip
     raise MotionFormatError(
         f"unsupported motion file type {suffix or '(none)'!r}; expected one of {MOTION_SUFFIXES}",
         path,

@@ -45,6 +45,7 @@ __all__ = [
     "known_families",
     "load_skeleton_map",
     "map_joints",
+    "resolve_skeleton_map",
     "unmapped_joints",
 ]
 
@@ -340,17 +341,24 @@ def _unmappable_error(
     return SkeletonMapError("\n".join(lines))
 
 
-def _resolve(clip, skeleton_map) -> SkeletonMap | None:
+def resolve_skeleton_map(
+    clip, skeleton_map: str | Path | SkeletonMap | None = None
+) -> SkeletonMap | None:
+    """The map to use for ``clip``: ``skeleton_map`` if given, else the clip's family, else the
+    detected one; ``None`` when nothing matches."""
     if skeleton_map is not None:
         return load_skeleton_map(skeleton_map)
     fam = getattr(clip, "skeleton_family", None) or detect_family(clip)
     return None if fam is None else load_skeleton_map(fam)
 
 
+_resolve = resolve_skeleton_map  # kept: torchmocap.data.subject imports this name
+
+
 def unmapped_joints(clip, skeleton_map: str | Path | SkeletonMap | None = None) -> list[str]:
     """human31 joints that the clip's map (or, without one, name guessing) cannot provide."""
     names = set(_names_of(clip))
-    smap = _resolve(clip, skeleton_map)
+    smap = resolve_skeleton_map(clip, skeleton_map)
     if smap is None:
         guessed = guess_joint_map(clip)
         return [h for h in HUMAN31_JOINTS if h not in guessed]
@@ -366,7 +374,7 @@ def map_joints(clip, skeleton_map: str | Path | SkeletonMap | None = None) -> di
             lacks.
     """
     names = _names_of(clip)
-    smap = _resolve(clip, skeleton_map)
+    smap = resolve_skeleton_map(clip, skeleton_map)
     what = getattr(clip, "source_path", None) or "skeleton"
     if smap is None:
         guessed = guess_joint_map(clip)
