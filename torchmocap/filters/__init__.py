@@ -1,5 +1,5 @@
 """torchmocap.filters: resampling, annealing schedules, annealed particle optimisation,
-autoregressive prediction and local optimisation.
+SIR steps, autoregressive prediction and local optimisation.
 
 Everything works on generic particle tensors ``(P, D)``; a Skeleton is only used optionally
 (limits, root rotation groups).
@@ -56,6 +56,7 @@ from torchmocap.filters.resampling import (
     stratified_resample,
     systematic_resample,
 )
+from torchmocap.filters.sir import SIRResult, SIRStep, sir_filter, sir_step
 
 __all__ = [
     "AnnealedParticleOptimiser",
@@ -75,6 +76,8 @@ __all__ = [
     "Resampler",
     "ResidualResampler",
     "RotationGroup",
+    "SIRResult",
+    "SIRStep",
     "StratifiedResampler",
     "SystematicResampler",
     "angles_from_matrix",
@@ -99,6 +102,8 @@ __all__ = [
     "offspring_counts",
     "predict_ar3",
     "residual_resample",
+    "sir_filter",
+    "sir_step",
     "skeleton_rotation_groups",
     "stratified_resample",
     "systematic_resample",
