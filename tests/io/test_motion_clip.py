@@ -238,3 +238,9 @@ def test_to_dtype_device(walk, device):
     assert (p.cpu().double() - walk.slice(0, 5).global_positions()).abs().max() < 1e-4
     r = clip.resample(60)
     assert r.num_frames == 3 and r.rotations.device.type == device.type
+
+
+def test_repr_and_identity_eq(walk):
+    assert repr(walk) == ("MotionClip(family='cmu_max', format='bvh', joints=38, frames=60, "
+                          f"fps=120, dtype=torch.float64, source={walk.source_path!r})")
+    assert walk == walk and walk != walk.slice(0)  # identity, no tensor truth-value errors

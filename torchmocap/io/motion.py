@@ -38,7 +38,7 @@ def z_up_to_y_up(v: torch.Tensor) -> torch.Tensor:
     return torch.stack([v[..., 0], v[..., 2], -v[..., 1]], -1)
 
 
-@dataclass
+@dataclass(eq=False, repr=False)
 class MotionClip:
     """A motion: skeleton geometry and per-frame local rotations (Z-up metres, radians).
 
@@ -130,6 +130,13 @@ class MotionClip:
         ):
             if not bool(torch.isfinite(t).all()):
                 raise ValueError(f"{name}: expected finite values, found NaN or inf")
+
+    def __repr__(self) -> str:
+        return (
+            f"MotionClip(family={self.skeleton_family!r}, format={self.source_format!r}, "
+            f"joints={self.num_joints}, frames={self.num_frames}, fps={self.fps:g}, "
+            f"dtype={self.rotations.dtype}, source={self.source_path!r})"
+        )
 
     # ------------------------------------------------------------------ basic properties
     @property
