@@ -351,3 +351,16 @@ class TestSkeleton:
             skeleton_rotation_groups(sk, ["l_elbow"])
         groups = skeleton_rotation_groups(sk, ["pelvis", "l_hip"])
         assert groups[1].indices == tuple(sk.joint_dofs("l_hip"))
+
+
+def test_float32_rotation_group():
+    """float32 history: composed prediction accurate to float32 precision (the Gauss–Newton
+    inverse runs in float64 internally)."""
+    omega = torch.tensor([0.05, 0.02, 0.45], dtype=F64)
+    r0 = torch.tensor(Rotation.from_euler("ZYX", [2.4, 0.2, -0.1]).as_matrix())
+    rs = r0 @ so3_exp(torch.arange(4, dtype=F64)[:, None] * omega)
+    eul = torch.tensor(Rotation.from_matrix(rs.numpy()).as_euler("ZYX")).float()
+    group = RotationGroup.from_axes((0, 1, 2), [[0, 0, 1.0], [0, 1, 0], [1, 0, 0]])
+    pred = predict_ar3(eul[:3], rotation_groups=[group])
+    assert pred.dtype == torch.float32
+    assert float(geodesic_angle(ZYX(pred.double()), rs[3])) < 1e-5

@@ -70,7 +70,8 @@ def angles_from_matrix(
 
     Generic inverse of any 3-parameter rotation map (Euler-type angles through arbitrary axes):
     damped Gauss–Newton on the residual ``log(to_matrix(θ)ᵀ R)`` started at ``reference``, with
-    a central-difference Jacobian, in float64. Because it starts at the reference (the previous
+    a central-difference Jacobian, in float64 (``to_matrix`` is called with float64 angles, so
+    it must follow its input's dtype). Because it starts at the reference (the previous
     frame's angles), it picks the branch and the ``2π`` winding closest to it — the angles come
     out continuous, not wrapped into ``(−π, π]``. Near gimbal lock the damping returns a valid
     decomposition of ``R`` (only ``t1 ± t3`` is determined there).
@@ -95,7 +96,8 @@ def angles_from_matrix(
     h = 1e-6
 
     def resid(t: torch.Tensor) -> torch.Tensor:
-        M = to_matrix(t.to(dtype) if dtype != torch.float64 else t).to(torch.float64)
+        # always float64: the central differences below need it (h = 1e-6)
+        M = to_matrix(t).to(torch.float64)
         return so3_log(M.transpose(-1, -2) @ Rd)
 
     for _ in range(iterations):
