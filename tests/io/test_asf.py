@@ -120,6 +120,9 @@ class TestTiny:
         a = read_amc(tmp_path / "r.amc", tmp_path / "r.asf").slice(0, 1)
         b = read_amc(tmp_path / "d.amc", deg).slice(0, 1)
         assert torch.allclose(a.global_positions(), b.global_positions(), atol=1e-12)
+        # the AMC's own :RADIANS header governs its values even when the ASF says deg
+        c = read_amc(tmp_path / "r.amc", deg).slice(0, 1)
+        assert torch.allclose(c.global_positions(), b.global_positions(), atol=1e-12)
 
 
 class TestErrors:

@@ -8,6 +8,7 @@ angles of its dofs, applied in the listed order: ``M = R_dk(vk) ... R_d1(v1)``, 
 local rotation is ``C M C^-1`` = rotations about ``C``'s columns ``C e_dk, ..., C e_d1``. The
 root's ``order`` names the AMC root columns (``TX TY TZ RX RY RZ``) and its ``axis`` the rotation
 order (``XYZ``: ``Rz Ry Rx``); a non-zero root ``orientation`` ``O`` is applied as ``O M O^-1``.
+AMC values are in the unit of the AMC's ``:DEGREES`` / ``:RADIANS`` header, else the ASF's.
 
 Joints of the resulting :class:`MotionClip`: ``root``, then one joint per bone at the bone's
 *start* (``lfemur`` = hip, ``ltibia`` = knee, ``lfoot`` = ankle) whose offset is the parent
@@ -321,8 +322,10 @@ def _build_clip(
     fps: float,
     unit: float,
     amc_path: str | None,
+    values_rad: bool | None = None,
 ) -> MotionClip:
-    rad = asf.angle == "rad"
+    rad = asf.angle == "rad"  # ASF axis / orientation angles
+    vrad = rad if values_rad is None else values_rad  # AMC values (its :RADIANS / :DEGREES)
     T = root_vals.shape[0]
     order = asf.joint_order()
     names = [n for n, _, _ in order]
@@ -358,7 +361,7 @@ def _build_clip(
                 -1,
             ).flip(-1)
             axes.append(ax)
-            rotations[:, 0] = angles_to_matrix(ang if rad else torch.deg2rad(ang), ax)
+            rotations[:, 0] = angles_to_matrix(ang if vrad else torch.deg2rad(ang), ax)
             continue
         if p != "root":
             offsets[j] = bone_vec(p)
@@ -375,7 +378,7 @@ def _build_clip(
         ax = (A @ cols_src).T.flip(0)
         ang = torch.from_numpy(bone_vals[n]).flip(-1)
         axes.append(ax)
-        rotations[:, j] = angles_to_matrix(ang if rad else torch.deg2rad(ang), ax)
+        rotations[:, j] = angles_to_matrix(ang if vrad else torch.deg2rad(ang), ax)
     trans = torch.zeros(T, 3, dtype=torch.float64)
     for k, c in enumerate("XYZ"):
         if f"T{c}" in asf.root_order:
@@ -409,9 +412,15 @@ def _parse_amc(text: str, asf: AsfSkeleton, path: str):
     frames: list[dict[str, list[float]]] = []
     frame_lines: list[int] = []
     prev_number: int | None = None
+    values_rad: bool | None = None
     for ln, raw in enumerate(lines, start=1):
         s = raw.strip()
-        if not s or s.startswith("#") or s.startswith(":"):
+        if not s or s.startswith("#"):
+            continue
+        if s.startswith(":"):
+            key = s.upper()
+            if key in (":RADIANS", ":DEGREES"):
+                values_rad = key == ":RADIANS"
             continue
         toks = s.split()
         if len(toks) == 1:
@@ -458,7 +467,7 @@ def _parse_amc(text: str, asf: AsfSkeleton, path: str):
         b: np.array([fr[b] for fr in frames], dtype=np.float64).reshape(len(frames), k)
         for b, k in dof_bones.items()
     }
-    return root_vals, bone_vals
+    return root_vals, bone_vals, values_rad
 
 
 def read_amc(
@@ -489,13 +498,15 @@ def read_amc(
         asf = read_asf(asf)
     if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
         raise ValueError(f"fps: expected a positive number, got {fps!r}")
-    root_vals, bone_vals = _parse_amc(_read_text(path), asf, path)
+    root_vals, bone_vals, values_rad = _parse_amc(_read_text(path), asf, path)
     T = root_vals.shape[0]
     if not 0 <= skip_frames < T:
         raise ValueError(f"skip_frames={skip_frames} leaves no frames of {T}")
     root_vals = root_vals[skip_frames:]
     bone_vals = {b: v[skip_frames:] for b, v in bone_vals.items()}
-    clip = _build_clip(asf, root_vals, bone_vals, fps, float(unit or asf.unit), path)
+    clip = _build_clip(
+        asf, root_vals, bone_vals, fps, float(unit or asf.unit), path, values_rad=values_rad
+    )
     if skeleton_map is not None:
         from torchmocap.io.skeleton_maps import load_skeleton_map
 
