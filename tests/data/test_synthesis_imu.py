@@ -1,0 +1,158 @@
+"""Synthetic IMUs: exact noise-free orientations, device-noise spread, misalignment, desync,
+drift, drops, placement errors."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchmocap.data.imu import SensorPlacementError, synthesize_imu
+from torchmocap.data.scenario import SENSOR_BONES, TRACKING_SENSORS
+from torchmocap.geometry import (
+    matrix_to_quaternion,
+    quaternion_angle,
+    quaternion_conjugate,
+    quaternion_multiply,
+    quaternion_slerp,
+    quaternion_to_matrix,
+    random_rotation_matrix,
+)
+from torchmocap.skeleton import human31
+
+NAMES = human31().joint_names
+
+
+def _bones(T: int, seed: int = 0, dtype=torch.float64) -> torch.Tensor:
+    return random_rotation_matrix((T, len(NAMES)), torch.Generator().manual_seed(seed),
+                                  dtype=dtype)
+
+
+def _imu(R, **kw):
+    args = dict(fps=25.0, generator=torch.Generator().manual_seed(1), noise="none")
+    args.update(kw)
+    return synthesize_imu(R, NAMES, dict(SENSOR_BONES), list(TRACKING_SENSORS), **args)
+
+
+def _deg(x: torch.Tensor) -> torch.Tensor:
+    return torch.rad2deg(x)
+
+
+class TestImu:
+    def test_smoke(self):
+        d = _imu(_bones(5))
+        assert d.quaternions.shape == (5, 10, 4) and d.clean.shape == (5, 10, 4)
+        assert d.valid.shape == (5, 10) and bool(d.valid.all())
+        assert d.offsets.shape == (10, 4) and d.names == list(SENSOR_BONES)
+        assert d.tracking.tolist() == [n in TRACKING_SENSORS for n in SENSOR_BONES]
+        assert d.select("tracking").names == list(TRACKING_SENSORS)
+        assert d.select("validation").names == ["chest", "l_upper_arm", "r_upper_arm",
+                                                "l_thigh", "r_thigh"]
+
+    def test_noise_free_is_ground_truth_times_offset(self, dtype):
+        R = _bones(7, dtype=dtype)
+        d = _imu(R)
+        idx = [NAMES.index(b) for b in SENSOR_BONES.values()]
+        expect = R[:, idx] @ quaternion_to_matrix(d.offsets)[None]
+        tol = 1e-5 if dtype == torch.float32 else 1e-12
+        assert torch.allclose(quaternion_to_matrix(d.clean), expect, atol=tol)
+        # with every error switched off the measurement is the clean orientation
+        assert torch.allclose(quaternion_to_matrix(d.quaternions), expect, atol=tol)
+        # offsets are proper, distinct, seeded random rotations; identity on request
+        assert float(_deg(quaternion_angle(d.offsets[0], d.offsets[1]))) > 1
+        assert torch.equal(_imu(R).offsets, d.offsets)
+        ident = _imu(R, offset="identity")
+        assert torch.allclose(quaternion_to_matrix(ident.clean), R[:, idx], atol=tol)
+
+    @pytest.mark.parametrize("kappa", [100.0, 1000.0])
+    def test_vmf_spread(self, kappa):
+        d = _imu(_bones(400), noise="vmf", kappa=kappa)
+        ang = _deg(quaternion_angle(d.clean, d.quaternions)).flatten()  # 4000 samples
+        med = float(ang.median())
+        assert abs(med - 176 / math.sqrt(kappa)) < 0.06 * 176 / math.sqrt(kappa)
+        p95 = float(ang.quantile(0.95))
+        assert abs(p95 - 320 / math.sqrt(kappa)) < 0.1 * 320 / math.sqrt(kappa)
+
+    def test_noise_is_in_the_sensor_frame(self):
+        # q = q_clean ∘ n (paper eq. 16): the error rotation q_clean* q is the vMF sample,
+        # whose mean is the identity (a left-multiplied noise would not be)
+        d = _imu(_bones(300), noise="vmf", kappa=200.0)
+        err = quaternion_multiply(quaternion_conjugate(d.clean), d.quaternions)
+        err = torch.where(err[..., :1] < 0, -err, err)
+        mean_axis = err[..., 1:].reshape(-1, 3).mean(0)
+        assert float(mean_axis.norm()) < 0.01
+
+    def test_tangent_spread(self):
+        d = _imu(_bones(400), noise="tangent", tangent_std_deg=2.0)
+        ang = _deg(quaternion_angle(d.clean, d.quaternions)).flatten()
+        # |N(0, σ² I₃)| is Maxwell: median ≈ 1.538 σ
+        assert abs(float(ang.median()) - 1.538 * 2.0) < 0.1
+
+    def test_misalignment_exact_angle_on_the_left(self):
+        R = _bones(6)
+        d = _imu(R, misalignment_deg=7.0)
+        assert abs(float(_deg(quaternion_angle(d.misalignment, torch.tensor(
+            [1.0, 0, 0, 0], dtype=torch.float64)))) - 7.0) < 1e-9
+        # q = q_mis ⊗ q_clean for every sensor and frame
+        q = quaternion_multiply(d.misalignment.expand_as(d.clean), d.clean)
+        assert float(quaternion_angle(q, d.quaternions).max()) < 1e-7
+        ang = _deg(quaternion_angle(d.clean, d.quaternions))
+        assert float(ang.max()) <= 7.0 + 1e-6
+        # a range is sampled uniformly within bounds
+        for s in range(5):
+            e = _imu(R, misalignment_deg=[5.0, 10.0], generator=torch.Generator().manual_seed(s))
+            a = float(_deg(quaternion_angle(e.misalignment, torch.tensor(
+                [1.0, 0, 0, 0], dtype=torch.float64))))
+            assert 5.0 - 1e-9 <= a <= 10.0 + 1e-9
+
+    def test_heading_drift(self):
+        T, fps = 251, 25.0  # 10 s
+        d = _imu(_bones(T), fps=fps, drift_deg_per_min=30.0)
+        err = quaternion_multiply(d.quaternions, quaternion_conjugate(d.clean))  # left error
+        ang = _deg(quaternion_angle(d.clean, d.quaternions))
+        expect = 30.0 * torch.arange(T, dtype=torch.float64) / fps / 60.0
+        assert torch.allclose(ang, expect[:, None].expand(T, 10), atol=1e-6)
+        # about world z
+        axis = torch.nn.functional.normalize(err[1:, :, 1:], dim=-1)
+        assert bool((axis[..., 2].abs() > 1 - 1e-6).all())
+        assert set(torch.sign(d.drift_rates).tolist()) <= {-1.0, 1.0}
+
+    def test_desync_slerps_neighbouring_frames(self):
+        R = _bones(8)
+        d = _imu(R, desync_frames=0.25)
+        q_tb = matrix_to_quaternion(R[:, [NAMES.index(b) for b in SENSOR_BONES.values()]])
+        expect = quaternion_slerp(q_tb[:-1], q_tb[1:], 0.25)
+        expect = quaternion_multiply(expect, d.offsets[None])
+        assert float(quaternion_angle(expect, d.quaternions[:-1]).max()) < 1e-7
+        # the last frame is clamped to the clip
+        assert float(quaternion_angle(d.clean[-1], d.quaternions[-1]).max()) < 1e-7
+
+    def test_dropped_samples_hold_last_value(self):
+        d = _imu(_bones(200), noise="vmf", kappa=1000.0, drop_prob=0.2)
+        v = d.valid
+        assert bool(v[0].all()) and 0.15 < float((~v).float().mean()) < 0.25
+        assert bool(torch.isfinite(d.quaternions).all())
+        T = v.shape[0]
+        for s in range(10):
+            last = 0
+            for t in range(T):
+                if bool(v[t, s]):
+                    last = t
+                else:
+                    assert torch.equal(d.quaternions[t, s], d.quaternions[last, s])
+
+    def test_exception(self):
+        R = _bones(3)
+        with pytest.raises(SensorPlacementError, match="tail"):
+            synthesize_imu(R, NAMES, {"tailbone": "tail"}, [], 25.0, torch.Generator())
+        with pytest.raises(SensorPlacementError, match="tracking"):
+            synthesize_imu(R, NAMES, {"back": "pelvis"}, ["chest"], 25.0, torch.Generator())
+        with pytest.raises(ValueError, match="bone_rotations"):
+            synthesize_imu(R[0], NAMES, {"back": "pelvis"}, [], 25.0, torch.Generator())
+        with pytest.raises(ValueError, match="at least one frame"):
+            synthesize_imu(R[:0], NAMES, {"back": "pelvis"}, [], 25.0, torch.Generator())
+        with pytest.raises(ValueError, match="noise"):
+            _imu(R, noise="laplace")
+        with pytest.raises(ValueError, match="which"):
+            _imu(R).select("all")

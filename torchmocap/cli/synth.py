@@ -1,0 +1,160 @@
+"""``torchmocap-synth``: synthesise an observation :class:`~torchmocap.data.Sequence` (Hydra).
+
+Overrides: ``data.clip.path`` (null = the bundled CMU 131_01 walk), ``data.clip.asf``,
+``data.clip.skeleton_map``, ``data.clip.frames``, ``data.clip.skip_frames``, ``data.clip.fps``,
+``data.scenario`` (name or YAML path, see :func:`~torchmocap.data.load_scenario`), ``seed``.
+Writes ``sequence/`` (manifest.json, arrays.npz, PNG masks and images) and ``preview.png`` into
+the Hydra run directory. Unreadable clips or bad settings: one line on stderr, exit status 2.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+import hydra
+from omegaconf import DictConfig
+
+__all__ = ["main", "preview_image", "resolve_clip_path", "run"]
+
+
+class _UsageError(Exception):
+    pass
+
+
+def resolve_clip_path(path: str | None) -> Path:
+    """The clip to read: ``path``, or the package's bundled walk when ``None``."""
+    if path is None or str(path) in ("", "null", "None"):
+        from importlib import resources
+
+        res = resources.files("torchmocap") / "assets" / "clips" / "cmu_131_01_walk.bvh"
+        return Path(str(res))
+    p = Path(hydra.utils.to_absolute_path(str(path)))
+    if not p.is_file():
+        raise _UsageError(f"data.clip.path: no such file: {p}")
+    return p
+
+
+def run(cfg: Any, out_dir: Path) -> dict[str, Any]:
+    """Load the clip, fit the subject, synthesise, save ``out_dir/sequence`` and the preview."""
+    from torchmocap.data import load_scenario, synthesize
+    from torchmocap.data.subject import fit_subject
+    from torchmocap.io import load_motion
+
+    clip_cfg = cfg.data.clip
+    path = resolve_clip_path(clip_cfg.path)
+    asf = hydra.utils.to_absolute_path(str(clip_cfg.asf)) if clip_cfg.asf else None
+    smap = clip_cfg.skeleton_map
+    if smap and Path(hydra.utils.to_absolute_path(str(smap))).is_file():
+        smap = hydra.utils.to_absolute_path(str(smap))
+    scenario = load_scenario(str(cfg.data.scenario) if not str(cfg.data.scenario).endswith(
+        (".yaml", ".yml")) else hydra.utils.to_absolute_path(str(cfg.data.scenario)))
+    clip = load_motion(path, asf=asf, skip_frames=int(clip_cfg.skip_frames or 0),
+                       skeleton_map=smap)
+    fps = float(clip_cfg.fps) if clip_cfg.fps else scenario.fps
+    if abs(clip.fps - fps) > 1e-6:
+        clip = clip.resample(fps)
+    frames = clip_cfg.frames
+    if frames is not None:
+        if int(frames) < 1:
+            raise _UsageError(f"data.clip.frames: expected >= 1, got {frames}")
+        if int(frames) < clip.num_frames:
+            clip = clip.slice(0, int(frames))
+    subject = fit_subject(clip, skeleton_map=smap)
+    seq = synthesize(subject, scenario, seed=int(cfg.seed))
+    seq.meta["clip"] = {"path": str(path), "asf": asf, "skeleton_map": smap,
+                        "skip_frames": int(clip_cfg.skip_frames or 0), "fps": fps,
+                        "frames": seq.num_frames, "family": subject.family}
+    seq.save(out_dir / "sequence", overwrite=True)
+    out = {"sequence": str(out_dir / "sequence"), "frames": seq.num_frames,
+           "modalities": seq.modalities}
+    if cfg.get("preview", True):
+        t = cfg.get("preview_frame")
+        t = seq.num_frames // 2 if t is None else int(t)
+        preview_image(seq, t).save(out_dir / "preview.png")
+        out["preview"] = str(out_dir / "preview.png")
+    return out
+
+
+def preview_image(seq, t: int):
+    """Contact sheet (PIL image) of frame ``t``: per camera the colour view with the 2D joints,
+    the silhouette, and the depth points seen from the depth camera."""
+    import numpy as np
+    from PIL import Image, ImageDraw
+
+    f = seq.frame(t)
+    C = seq.num_cameras
+    W, H = (int(seq.rig.image_size[0, 0]), int(seq.rig.image_size[0, 1])) if C else (160, 120)
+    tiles = []
+    for c in range(C):
+        if f.images is not None:
+            col = Image.fromarray(f.images[c].numpy(), "RGB")
+        else:
+            col = Image.new("RGB", (W, H))
+        if f.joints2d is not None:
+            d = ImageDraw.Draw(col)
+            for u, v, conf in f.joints2d[c].tolist():
+                if conf > 0:
+                    r = 2
+                    d.ellipse([u - r, v - r, u + r, v + r],
+                              outline=(0, 255, 0) if conf >= 0.5 else (255, 200, 0))
+        row = [col]
+        if f.silhouettes is not None:
+            m = f.silhouettes[c].numpy().astype(np.uint8) * 255
+            row.append(Image.fromarray(m, "L").convert("RGB"))
+        tiles.append(row)
+    if seq.depth is not None:
+        cam = seq.depth.camera
+        dw, dh = int(cam.image_size[0, 0]), int(cam.image_size[0, 1])
+        pts = f.depth.float()
+        canvas = np.zeros((dh, dw, 3), np.uint8)
+        if pts.shape[0]:
+            pix, z, vis = cam.project(pts)
+            pix, z, vis = pix[0], z[0], vis[0]
+            uv = pix[vis].round().long()
+            zz = z[vis]
+            g = (255 * (1 - (zz - zz.min()) / (zz.max() - zz.min() + 1e-9))).clamp(40, 255)
+            canvas[uv[:, 1].clamp(0, dh - 1), uv[:, 0].clamp(0, dw - 1)] = \
+                g.byte().numpy()[:, None]
+        img = Image.fromarray(canvas, "RGB").resize((W, H), Image.NEAREST)
+        tiles.append([img])
+    # cameras are columns (colour view on top, silhouette below); the depth view comes last
+    nrow = max(len(col) for col in tiles) if tiles else 1
+    sheet = Image.new("RGB", (max(1, len(tiles)) * W, nrow * H), (30, 30, 30))
+    for j, col in enumerate(tiles):
+        for i, im in enumerate(col):
+            sheet.paste(im.resize((W, H)), (j * W, i * H))
+    ImageDraw.Draw(sheet).text((4, 4), f"{seq.scenario} frame {t}", fill=(255, 255, 0))
+    return sheet
+
+
+@hydra.main(config_path="../conf", config_name="synth", version_base="1.3")
+def _hydra_main(cfg: DictConfig) -> None:
+    import json
+
+    from hydra.core.hydra_config import HydraConfig
+
+    from torchmocap.cameras import CameraError
+    from torchmocap.data import MissingModalityError, ScenarioError, SynthesisError
+    from torchmocap.io import MotionFormatError, SkeletonMapError
+
+    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    try:
+        info = run(cfg, out_dir)
+    except (_UsageError, MotionFormatError, SkeletonMapError, ScenarioError, SynthesisError,
+            CameraError, MissingModalityError, FileNotFoundError, KeyError, ValueError) as e:
+        msg = str(e.args[0]) if isinstance(e, KeyError) and e.args else str(e)
+        print(f"torchmocap-synth: error: {msg.splitlines()[0] if msg else type(e).__name__}",
+              file=sys.stderr)
+        sys.exit(2)
+    print(json.dumps(info))
+
+
+def main() -> None:
+    """Console entry point."""
+    _hydra_main()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""Hydra configs shipped with the package (primary configs and config groups)."""
