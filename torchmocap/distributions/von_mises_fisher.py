@@ -191,6 +191,48 @@ def _wood_sample_w(
     return dw_out
 
 
+def _wood_sample_scalar(
+    kappa: float, n: int, m: int, dtype, device, generator, max_rounds: int
+) -> torch.Tensor:
+    """Wood's sampler for one shared ``kappa`` (Python float constants, fewest tensor ops)."""
+    two_k = 2.0 * kappa
+    b = m / (two_k + math.hypot(two_k, m))
+    d0 = 2 * b / (1 + b)
+    ll = math.log(d0) + math.log(2 - d0)
+    c_acc = -m * ll + kappa * d0  # constant part of the acceptance test
+    out = torch.empty(n, dtype=dtype, device=device)
+    todo = None
+    k, r = n, (1 if n > 20000 else 2)
+    for _ in range(max_rounds):
+        u = torch.rand(3, r, k, generator=generator, dtype=dtype, device=device)
+        if m == 3:
+            z = torch.cos(u[1].mul_(math.pi)).mul_(torch.sqrt(u[0])).mul_(0.5).add_(0.5)
+        else:
+            z = _beta_sym(u[:2].permute(1, 2, 0).reshape(-1, 2), m, generator, dtype,
+                          device).view(r, k)
+        dw = z.mul(2 * b).div_(z.mul(-(1 - b)).add_(1))  # 1 - W, (r, k)
+        # kappa (d0 - dw) + m [log(d0 + dw (1 - d0)) - log(1 - x0^2)] >= log U
+        lhs = torch.log(dw.mul(1 - d0).add_(d0)).mul_(m).sub_(dw, alpha=kappa).add_(c_acc)
+        acc = lhs >= torch.log(u[2])
+        # first accepted candidate per entry (columns scanned from the last to the first)
+        dws, has = dw[r - 1], acc[r - 1]
+        for j in range(r - 2, -1, -1):
+            dws = torch.where(acc[j], dw[j], dws)
+            has = has | acc[j]
+        if todo is None:
+            out = dws
+            todo = (~has).nonzero().squeeze(-1)
+        else:
+            out[todo[has]] = dws[has]
+            todo = todo[~has]
+        k, r = int(todo.shape[0]), 6
+        if k == 0:
+            return out
+    raise RuntimeError(
+        f"VonMisesFisher.sample: {k} entries still rejected after {max_rounds} rounds"
+    )
+
+
 def _uniform_directions(n: int, m: int, generator, dtype, device) -> torch.Tensor:
     """``(n, m)`` uniform unit vectors on ``S^{m-1}`` (2 uniforms each for ``m = 3``)."""
     if m == 3:
@@ -247,6 +289,7 @@ class VonMisesFisher(Distribution):
         e1 = torch.zeros(self.p, dtype=loc.dtype, device=loc.device)
         e1[0] = 1
         self._mean_is_e1 = bool((loc == e1).all())
+        self._kappa_float: float | None = None
         super().__init__(batch_shape, torch.Size([self.p]), validate_args=False)
         self._validate_values = bool(validate_args)
 
@@ -304,9 +347,15 @@ class VonMisesFisher(Distribution):
         with torch.no_grad():
             n = shape[:-1].numel()
             conc = self.concentration
-            kappa = conc.reshape(1) if conc.numel() == 1 else conc.expand(shape[:-1]).reshape(-1)
-            dw = _wood_sample_w(kappa, n, m, generator, self.max_rounds)
-            v = _uniform_directions(n, m, generator, kappa.dtype, kappa.device)
+            if conc.numel() == 1:
+                if self._kappa_float is None:
+                    self._kappa_float = float(conc.reshape(()))
+                dw = _wood_sample_scalar(self._kappa_float, n, m, conc.dtype, conc.device,
+                                         generator, self.max_rounds)
+            else:
+                kappa = conc.expand(shape[:-1]).reshape(-1)
+                dw = _wood_sample_w(kappa, n, m, generator, self.max_rounds)
+            v = _uniform_directions(n, m, generator, conc.dtype, conc.device)
             r = torch.sqrt(dw * (2 - dw))  # sqrt(1 - W^2) without cancellation
             x = torch.cat([(1 - dw)[:, None], r[:, None] * v], dim=-1)
             if not self._mean_is_e1:

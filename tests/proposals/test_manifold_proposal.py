@@ -1,0 +1,161 @@
+"""ManifoldProposal (noise models none / gaussian / vmf / tangent_gaussian) and the base pieces."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchmocap.distributions import kappa_to_tangent_std
+from torchmocap.geometry import geodesic_angle, matrix_to_quaternion
+from torchmocap.ik import SensorManifold
+from torchmocap.proposals import (
+    NOISE_MODELS,
+    GaussianDiffusionProposal,
+    ManifoldProposal,
+    ProposalContext,
+    select_ancestors,
+)
+from torchmocap.skeleton import human31
+
+F64 = torch.float64
+
+
+@pytest.fixture(scope="module")
+def setup():
+    sk = human31().double()
+    m = SensorManifold(sk).double()
+    th = torch.zeros(31, dtype=F64)
+    th[sk.joint_dofs("l_elbow")] = 0.6
+    th[sk.joint_dofs("r_knee")] = 0.4
+    th[sk.joint_dofs("l_shoulder")] = torch.tensor([0.3, 0.2, -0.1], dtype=F64)
+    return sk, m, th
+
+
+class TestBase:
+    def test_select_ancestors(self):
+        prev = torch.arange(12.0).reshape(4, 3)
+        g = torch.Generator().manual_seed(0)
+        assert torch.equal(select_ancestors(ProposalContext(prev), 4, 3, g), prev)
+        out = select_ancestors(ProposalContext(prev), 10, 3, g)
+        assert out.shape == (10, 3)
+        lw = torch.tensor([-1e9, 0.0, -1e9, -1e9])
+        out = select_ancestors(ProposalContext(prev, log_weights=lw), 6, 3, g)
+        assert torch.equal(out, prev[1].expand(6, 3))
+        assert select_ancestors(ProposalContext(prev[0]), 5, 3, g).shape == (5, 3)
+        with pytest.raises(ValueError, match="previous"):
+            select_ancestors(ProposalContext(torch.zeros(4, 2)), 4, 3, g)
+        with pytest.raises(ValueError, match="num"):
+            select_ancestors(ProposalContext(prev), 0, 3, g)
+
+    def test_gaussian_diffusion(self):
+        g = torch.Generator().manual_seed(1)
+        p = GaussianDiffusionProposal([0.1, 0.0, 0.3], 3)
+        out = p.sample(ProposalContext(torch.zeros(3, dtype=F64)), 20000, g)
+        assert torch.allclose(out.particles.std(0), torch.tensor([0.1, 0.0, 0.3], dtype=F64),
+                              rtol=0.03)
+        ref = (torch.distributions.Normal(0.0, 0.1).log_prob(out.particles[:, 0])
+               + torch.distributions.Normal(0.0, 0.3).log_prob(out.particles[:, 2]))
+        assert torch.allclose(out.log_q, ref, atol=1e-6)  # std buffer is float32
+        pc = GaussianDiffusionProposal(1.0, 3, lower=torch.full((3,), -0.5),
+                                       upper=torch.full((3,), 0.5))
+        x = pc.sample(ProposalContext(torch.zeros(3)), 1000, g).particles
+        assert float(x.abs().max()) <= 0.5 and x.abs().max() == 0.5
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="std"):
+            GaussianDiffusionProposal([0.1, 0.2], 3)
+        with pytest.raises(ValueError, match="std"):
+            GaussianDiffusionProposal(-1.0, 3)
+
+
+class TestManifoldProposal:
+    @pytest.mark.parametrize("noise", NOISE_MODELS)
+    def test_smoke(self, setup, noise):
+        sk, m, th = setup
+        prop = ManifoldProposal(m, active_std=0.05, noise=noise)
+        ctx = ProposalContext(previous=th, sensors=m.sensor_orientations(th))
+        out = prop.sample(ctx, 50, torch.Generator().manual_seed(0))
+        assert out.particles.shape == (50, 31) and out.particles.dtype == F64
+        assert torch.isfinite(out.particles).all()
+        assert out.stats["residual_max_deg"] < 1e-6
+        assert out.log_q is None
+
+    def test_feature_none_matches_sensors_exactly(self, setup):
+        sk, m, th = setup
+        prop = ManifoldProposal(m, active_std=0.1, noise="none")
+        S = m.sensor_orientations(th)
+        out = prop.sample(ProposalContext(previous=th, sensors=S), 2000,
+                          torch.Generator().manual_seed(1))
+        got = m.bone_orientations(out.particles)
+        assert float(geodesic_angle(got, m.bone_orientations(th).expand_as(got)).max()) < 1e-9
+        # active coordinates are diffused with the requested std (clamped ones excluded)
+        d = m(out.particles) - m(th)
+        free = [i for i, n in enumerate(m.active_names) if "elbow" not in n and "knee" not in n
+                and "ankle" not in n]
+        assert torch.allclose(d[:, free].std(0), torch.full((len(free),), 0.1, dtype=F64),
+                              rtol=0.06)
+        # quaternion sensors give the same particles
+        out_q = prop.sample(ProposalContext(previous=th, sensors=matrix_to_quaternion(S)), 2000,
+                            torch.Generator().manual_seed(1))
+        assert torch.allclose(out_q.particles, out.particles, atol=1e-10)
+
+    @pytest.mark.parametrize("noise", ["vmf", "tangent_gaussian"])
+    def test_feature_rotation_noise_angles(self, setup, noise):
+        """Bone orientation error = angle of the sensor noise: median 176/sqrt(kappa) deg."""
+        sk, m, th = setup
+        kappa = 400.0
+        prop = ManifoldProposal(m, active_std=0.0, noise=noise, kappa=kappa)
+        S = m.sensor_orientations(th)
+        out = prop.sample(ProposalContext(previous=th, sensors=S), 4000,
+                          torch.Generator().manual_seed(2))
+        ang = geodesic_angle(m.bone_orientations(out.particles),
+                             m.bone_orientations(th).expand(4000, 5, 3, 3))
+        med = math.degrees(float(ang.median()))
+        assert med == pytest.approx(176.0 / math.sqrt(kappa), rel=0.05)
+
+    def test_feature_gaussian_on_passive_parameters(self, setup):
+        sk, m, th = setup
+        prop = ManifoldProposal(m, active_std=0.0, noise="gaussian", kappa=1000.0)
+        out = prop.sample(ProposalContext(previous=th, sensors=m.sensor_orientations(th)),
+                          8000, torch.Generator().manual_seed(3))
+        d = out.particles - th
+        pidx = m.passive_index.flatten()
+        sd = d[:, pidx].std(0)
+        assert torch.allclose(sd, torch.full_like(sd, kappa_to_tangent_std(1000.0)), rtol=0.05)
+        assert float(d[:, m.active_index].abs().max()) < 1e-9
+
+    def test_feature_per_particle_previous_and_decode(self, setup):
+        sk, m, th = setup
+        g = torch.Generator().manual_seed(4)
+        prev = th + 0.05 * torch.randn(30, 31, generator=g, dtype=F64)
+        prop = ManifoldProposal(m, active_std=0.0, noise="none")
+        S = m.sensor_orientations(th)
+        out = prop.sample(ProposalContext(previous=prev, sensors=S), 30, g)
+        assert torch.allclose(m(out.particles), torch.clamp(m(prev), prop.active_lower.double(),
+                                                             prop.active_upper.double()))
+        sol = prop.decode(m(out.particles), S, g, reference=out.particles)
+        assert torch.allclose(sol.theta, out.particles, atol=1e-9)
+
+    def test_exception(self, setup):
+        sk, m, th = setup
+        with pytest.raises(ValueError, match="noise"):
+            ManifoldProposal(m, noise="cauchy")
+        with pytest.raises(ValueError, match="kappa"):
+            ManifoldProposal(m, kappa=0.0)
+        with pytest.raises(ValueError, match="active_std"):
+            ManifoldProposal(m, active_std=[0.1, 0.2])
+        with pytest.raises(ValueError, match="sensors"):
+            ManifoldProposal(m).sample(ProposalContext(previous=th), 10)
+        bad = torch.zeros(5, 4, dtype=F64)
+        with pytest.raises(ValueError, match="sensors"):
+            ManifoldProposal(m).sample(ProposalContext(previous=th, sensors=bad), 10)
+
+    def test_module(self, setup):
+        sk, m, th = setup
+        prop = ManifoldProposal(m, active_std=0.05, noise="vmf")
+        ctx = ProposalContext(previous=th, sensors=m.sensor_orientations(th))
+        a = prop(ctx, 20, torch.Generator().manual_seed(5)).particles
+        b = prop.sample(ctx, 20, torch.Generator().manual_seed(5)).particles
+        assert torch.equal(a, b)  # same seed, same particles
