@@ -106,7 +106,8 @@ def project_capsules(endpoints: torch.Tensor, radii: torch.Tensor, rig) -> tuple
     K = rig.K.to(endpoints.dtype)
     f = 0.5 * (K[:, 0, 0] + K[:, 1, 1])  # (C,)
     front = (z > 1e-3).all(-1)
-    rpx = f[None, :, None, None] * radii.to(endpoints.dtype)[None, None, :, None] / z.clamp_min(1e-3)
+    r = radii.to(endpoints.dtype)[None, None, :, None]
+    rpx = f[None, :, None, None] * r / z.clamp_min(1e-3)
     return ends, rpx, front
 
 
@@ -179,7 +180,7 @@ def _coverage_margin(q, ends, rpx, smooth: bool):
 def silhouette_energy(endpoints: torch.Tensor, radii: torch.Tensor, rig,
                       obs: SilhouetteObservation, smooth: bool = False, axis_samples: int = 5,
                       across_samples: int = 3, tau: float = 1.5) -> torch.Tensor:
-    """Silhouette disagreement ``V_silh (P,)`` in [0, 1] of capsule poses ``endpoints (P, B, 2, 3)``.
+    """Silhouette disagreement ``V_silh (P,)`` in [0, 1] of capsules ``endpoints (P, B, 2, 3)``.
 
     0 means the projected capsules and the foreground agree exactly at the sampled points; see
     the module docstring for the two terms.
