@@ -85,6 +85,25 @@ class TestSensorManifold:
         assert float(geodesic_angle(got, R).max()) < 1e-9
         assert torch.equal(m(sol.theta), xa)
 
+    def test_feature_noise_argument(self, manifold64):
+        """inverse(x_a, R, noise=q) == inverse(x_a, R R(q)): fused GEMM path, per-particle
+        sensors, matrix noise -- all agree."""
+        from torchmocap.geometry import quaternion_to_matrix, random_quaternion
+
+        m = manifold64
+        g = torch.Generator().manual_seed(12)
+        th = _random_poses(m.skeleton, 64, g)
+        xa = m(th)
+        R = random_rotation_matrix(5, g, dtype=F64)
+        q = random_quaternion((64, 5), g, dtype=F64)
+        ref = m.inverse(xa, R @ quaternion_to_matrix(q), reference=th)
+        for sens, noise in ((R, q), (R.expand(64, 5, 3, 3), q), (R, quaternion_to_matrix(q))):
+            sol = m.inverse(xa, sens, noise=noise, reference=th)
+            assert torch.allclose(sol.theta, ref.theta, atol=1e-10)
+            assert float(sol.residual.max()) < 1e-9
+        with pytest.raises(ValueError, match="sensors"):
+            m.inverse(xa, R, noise=q[:, :3])
+
     def test_feature_calibration(self, sk64):
         """Sensors with unknown mounting offsets: calibrate on frame 0 (eq. 8), then recover."""
         m = SensorManifold(sk64).double()
@@ -98,6 +117,12 @@ class TestSensorManifold:
         sol = m.inverse(m(th), R_ts, reference=th)
         assert float((sol.theta - th).abs().max()) < 1e-9
         assert torch.allclose(m.sensor_orientations(th), R_ts, atol=1e-12)
+        # fused noise path with calibration offsets: identity noise changes nothing
+        ident = torch.zeros(50, 5, 4, dtype=F64)
+        ident[..., 0] = 1
+        sol_n = m.inverse(m(th), R_ts[0], noise=ident, reference=th)
+        sol_0 = m.inverse(m(th), R_ts[0], reference=th)
+        assert torch.allclose(sol_n.theta, sol_0.theta, atol=1e-10)
 
     def test_feature_limits_then_reference(self, manifold64):
         m = manifold64
