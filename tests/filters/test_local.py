@@ -133,8 +133,8 @@ class TestAdam:
 
     def test_rosenbrock_2d(self):
         x0 = torch.tensor([[-1.2, 1.0]], dtype=F64)
-        res = minimise_local(rosenbrock, x0, method="adam", iterations=5000, lr=0.02)
-        assert float((res.x - 1).abs().max()) < 0.05
+        res = minimise_local(rosenbrock, x0, method="adam", iterations=2500, lr=0.04)
+        assert float((res.x - 1).abs().max()) < 1e-3  # measured 2.6e-5
 
     def test_box(self):
         m = torch.tensor([[2.0, -3.0, 0.2]], dtype=F64)
