@@ -279,3 +279,47 @@ class TestKeepRedraw:
         own = (idx == torch.arange(n)).double().mean(0)
         expect = w / w.max() + (1 - w / w.max()) * w
         assert torch.allclose(own, expect, atol=0.015)
+
+
+# ---------------------------------------------------------------------------------------------
+# property-based checks
+# ---------------------------------------------------------------------------------------------
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@st.composite
+def _log_weight_rows(draw):
+    n = draw(st.integers(1, 40))
+    rows = draw(st.integers(1, 4))
+    vals = draw(
+        st.lists(
+            st.one_of(st.floats(-50, 50), st.just(-math.inf)),
+            min_size=n * rows,
+            max_size=n * rows,
+        )
+    )
+    lw = torch.tensor(vals, dtype=torch.float32).reshape(rows, n)
+    lw[:, draw(st.integers(0, n - 1))] = draw(st.floats(-50, 50))  # one finite per row
+    return lw
+
+
+@settings(max_examples=60, deadline=None)
+@given(lw=_log_weight_rows(), seed=st.integers(0, 2**31 - 1), name=st.sampled_from(list(FUNCS)))
+def test_property_valid_indices(lw, seed, name):
+    """Any valid weights: indices in range, zero weights never chosen, N offspring per row."""
+    idx = FUNCS[name](lw, torch.Generator().manual_seed(seed))
+    n = lw.shape[-1]
+    assert idx.shape == lw.shape
+    assert int(idx.min()) >= 0 and int(idx.max()) < n
+    assert bool(torch.isfinite(torch.gather(lw, -1, idx)).all())
+
+
+@settings(max_examples=60, deadline=None)
+@given(lw=_log_weight_rows(), seed=st.integers(0, 2**31 - 1))
+def test_property_systematic_floor_ceil(lw, seed):
+    n = lw.shape[-1]
+    nw = n * torch.exp(normalize_log_weights(lw.double()))
+    c = offspring_counts(systematic_resample(lw, torch.Generator().manual_seed(seed)), n)
+    assert torch.all(c >= torch.floor(nw - 1e-5)) and torch.all(c <= torch.ceil(nw + 1e-5))

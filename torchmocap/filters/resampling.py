@@ -116,7 +116,7 @@ def _work_dtype(x: torch.Tensor) -> torch.dtype:
 
 def _cdf(log_w: torch.Tensor) -> torch.Tensor:
     """Cumulative distribution ``(..., N)`` ending at exactly 1 (float64 where possible)."""
-    w = torch.exp(normalize_log_weights(log_w).to(_work_dtype(log_w)))
+    w = torch.exp(normalize_log_weights(log_w.to(_work_dtype(log_w))))
     c = torch.cumsum(w, dim=-1)
     return c / c[..., -1:]
 
@@ -228,7 +228,7 @@ def residual_resample(
     m = _num(log_w, num)
     n = log_w.shape[-1]
     lead = log_w.shape[:-1]
-    w = torch.exp(normalize_log_weights(log_w).to(_work_dtype(log_w)))
+    w = torch.exp(normalize_log_weights(log_w.to(_work_dtype(log_w))))
     w = w / w.sum(dim=-1, keepdim=True)
     mw = m * w
     copies = torch.floor(mw)
