@@ -364,3 +364,42 @@ class TestBounds:
     def test_weighted_mean(self):
         x = torch.tensor([[0.0, 1.0], [2.0, 3.0]])
         assert weighted_mean(x, torch.tensor([0.25, 0.75])).tolist() == [1.5, 2.5]
+
+
+def test_human31_pose_from_joint_positions():
+    """Paper settings (200 particles, 15 layers) on human31 (D = 31) with joint limits: the
+    annealed estimate cuts the mean joint error of the noisy start by > 40 % (measured:
+    8.5 cm → 3.0 cm; 6.9 → 3.4 cm at another seed); the local optimiser then converges."""
+    skeleton_mod = pytest.importorskip("torchmocap.skeleton")
+    from torchmocap.filters.local import minimise_local
+
+    sk = skeleton_mod.human31()
+    d = sk.num_dofs
+    g = torch.Generator().manual_seed(0)
+    lo, hi = sk.lower, sk.upper
+    span = torch.where(torch.isfinite(hi - lo), hi - lo, torch.ones_like(lo))
+    mid = torch.where(torch.isfinite(lo + hi), (lo + hi) / 2, torch.zeros_like(lo))
+    target = sk.clamp(mid + 0.3 * span * (torch.rand(d, generator=g) - 0.5))
+    joints = sk.joint_positions(target[None])[0]
+
+    def energy(theta):
+        return ((sk.joint_positions(theta) - joints) ** 2).sum(-1).mean(-1)
+
+    def mpjpe(theta):
+        return float((sk.joint_positions(theta[None])[0] - joints).norm(dim=-1).mean())
+
+    sigma = torch.full((d,), 0.1)
+    sigma[sk.translation_dofs] = 0.03
+    start = target + sigma * torch.randn(d, generator=g)
+    res = anneal(
+        energy,
+        start + sigma * torch.randn(200, d, generator=g),
+        layers=15,
+        lower=lo,
+        upper=hi,
+        generator=g,
+    )
+    assert bool(sk.within_limits(res.particles).all())
+    assert mpjpe(res.estimate) < 0.6 * mpjpe(start)
+    local = minimise_local(energy, res.estimate[None], iterations=100, lower=lo, upper=hi)
+    assert mpjpe(local.x[0]) < 0.003
