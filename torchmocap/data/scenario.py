@@ -64,7 +64,10 @@ class ScenarioError(ValueError):
 
 @dataclass
 class SilhouetteConfig:
-    """Foreground masks and their corruptions (pixel units refer to the scenario image size).
+    """Foreground masks and their corruptions.
+
+    Pixel sizes (``boundary_width``, ``hole_radius``, ``clutter_radius``) are given for a
+    320-pixel-wide image and scale with the scenario's image width.
 
     Attributes:
         enabled: render silhouettes.

@@ -102,6 +102,7 @@ def _slice_subject(subject, frames: int | None):
 
 
 _SKINNED: dict[str, Any] = {}
+_REFERENCE_WIDTH = 320.0
 
 
 def _skinned_body():
@@ -342,9 +343,12 @@ def synthesize(
         flat = masks.reshape(T * C, H, W)
         if s.shadow and shadow is not None:
             flat = flat | shadow.reshape(T * C, H, W)
-        flat = add_boundary_noise(flat, s.boundary_flip, s.boundary_width, g_sil)
-        flat = punch_holes(flat, s.holes, tuple(s.hole_radius), g_sil)
-        flat = add_clutter(flat, s.clutter, tuple(s.clutter_radius), g_sil)
+        k = W / _REFERENCE_WIDTH  # corruption sizes are given for 320-px-wide images
+        flat = add_boundary_noise(flat, s.boundary_flip, max(1, round(s.boundary_width * k)),
+                                  g_sil)
+        flat = punch_holes(flat, s.holes, (s.hole_radius[0] * k, s.hole_radius[1] * k), g_sil)
+        flat = add_clutter(flat, s.clutter, (s.clutter_radius[0] * k, s.clutter_radius[1] * k),
+                           g_sil)
         flat, drop = drop_views(flat, s.drop_view, g_sil)
         dropped = drop.reshape(T, C)
         if images is not None and bool(dropped.any()):
