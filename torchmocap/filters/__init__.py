@@ -13,6 +13,7 @@ from torchmocap.filters.annealed import (
     anneal,
     bound_particles,
     default_diffusion,
+    rotation_mean_fn,
     weighted_mean,
 )
 from torchmocap.filters.annealing import (
@@ -102,6 +103,7 @@ __all__ = [
     "offspring_counts",
     "predict_ar3",
     "residual_resample",
+    "rotation_mean_fn",
     "sir_filter",
     "sir_step",
     "skeleton_rotation_groups",

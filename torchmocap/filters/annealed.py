@@ -32,7 +32,7 @@ Example:
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -54,6 +54,7 @@ __all__ = [
     "anneal",
     "bound_particles",
     "default_diffusion",
+    "rotation_mean_fn",
     "weighted_mean",
 ]
 
@@ -122,6 +123,39 @@ def weighted_mean(particles: torch.Tensor, weights: torch.Tensor) -> torch.Tenso
     ``weights`` must be normalised.
     """
     return (weights[:, None] * particles).sum(0)
+
+
+def rotation_mean_fn(
+    rotation_groups: Sequence,
+) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+    """A ``mean_fn`` for :func:`anneal` that averages rotation coordinates on SO(3).
+
+    Coordinates outside the groups get the weighted mean; each
+    :class:`~torchmocap.filters.prediction.RotationGroup` (or plain index triple = rotation
+    vector) gets the chordal weighted mean ``proj_SO(3)(Σ w_i R_i)`` converted back with the
+    group's ``from_matrix`` (reference: the highest-weight particle). Averaging angles directly
+    fails at the ±π seam: yaws of +3.1 and −3.1 average to 0, the opposite direction.
+    """
+    from torchmocap.filters.prediction import _as_groups
+
+    groups = _as_groups(rotation_groups)
+
+    def mean_fn(particles: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        out = weighted_mean(particles, weights).clone()
+        ref_i = int(torch.argmax(weights))
+        for g in groups:
+            idx = list(g.indices)
+            R = g.matrix(particles[:, idx]).to(torch.float64)
+            M = (weights.to(torch.float64)[:, None, None] * R).sum(0)
+            U, _, Vh = torch.linalg.svd(M)
+            fix = torch.ones(3, dtype=M.dtype, device=M.device)
+            fix[2] = torch.sign(torch.linalg.det(U @ Vh))
+            Rm = (U * fix) @ Vh
+            ref = particles[ref_i, idx]
+            out[idx] = g.values(Rm.to(particles.dtype), ref).to(out.dtype)
+        return out
+
+    return mean_fn
 
 
 def _check_sigma(sigma, name: str) -> torch.Tensor:
