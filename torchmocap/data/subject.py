@@ -126,13 +126,13 @@ def fit_subject(
         rotation_weight: metres per radian of the bone-orientation residuals (stage 2).
         prior_weight: pull towards the previous stage's pose (keeps unobservable DoF still).
     """
-    from torchmocap.io.skeleton_maps import _resolve, map_joints
+    from torchmocap.io.skeleton_maps import map_joints, resolve_skeleton_map
 
     if clip.num_frames < 1:
         raise ValueError("clip: expected at least one frame, got an empty clip")
     base = (base or human31()).to(dtype)
     idx = map_joints(clip, skeleton_map)
-    smap = _resolve(clip, skeleton_map)
+    smap = resolve_skeleton_map(clip, skeleton_map)
     names = base.joint_names
     missing = [n for n in names if n not in idx]
     if missing:

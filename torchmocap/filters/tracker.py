@@ -23,6 +23,7 @@ identical track. Shapes: ``P`` particles, ``D`` DoF, ``C`` views, ``S`` tracking
 from __future__ import annotations
 
 import math
+import os
 import time
 from dataclasses import dataclass, field
 
@@ -37,7 +38,15 @@ from torchmocap.likelihoods.appearance import appearance_energy, body_surface_pa
 from torchmocap.likelihoods.orientation import orientation_energy
 from torchmocap.likelihoods.silhouette import prepare_silhouettes, silhouette_energy
 
-__all__ = ["TrackerConfig", "Tracker", "TrackState", "MissingObservationError", "METHODS"]
+__all__ = [
+    "METHODS",
+    "MissingObservationError",
+    "Track",
+    "TrackState",
+    "Tracker",
+    "TrackerConfig",
+    "frame_observation",
+]
 
 METHODS = ("p", "g", "gs", "rs", "l", "ls")
 NOISES = ("vmf", "gaussian", "tangent", "none")
@@ -96,6 +105,35 @@ class TrackState:
     generator_state: torch.Tensor
     estimates: list = field(default_factory=list)
     infos: list = field(default_factory=list)
+
+
+@dataclass
+class Track:
+    """Output of :meth:`Tracker.run`.
+
+    Attributes:
+        theta: ``(T, D)`` estimates (frame 0 is the initial pose).
+        infos: per-frame diagnostics (ESS and beta per layer, timings, acceptance).
+        seconds_per_frame: mean tracking time of frames 1..T-1.
+    """
+
+    theta: torch.Tensor
+    infos: list
+    seconds_per_frame: float
+
+
+def frame_observation(frame, tracking: torch.Tensor | None = None) -> dict:
+    """Observation dict of a :class:`~torchmocap.data.sequence.Frame` for :meth:`Tracker.step`;
+    ``tracking`` selects the tracking IMUs ``(S,)`` (index or bool)."""
+    obs = {"silhouettes": frame.silhouettes, "images": frame.images}
+    if frame.view_dropped is not None:
+        obs["view_valid"] = ~frame.view_dropped.bool()
+    if frame.imu is not None:
+        sel = slice(None) if tracking is None else tracking
+        obs["imu"] = frame.imu[sel]
+        if frame.imu_valid is not None:
+            obs["imu_valid"] = frame.imu_valid[sel]
+    return obs
 
 
 class Tracker:
@@ -417,3 +455,79 @@ class Tracker:
             with torch.no_grad():
                 x.copy_(torch.maximum(torch.minimum(x, self.upper), self.lower))
         return best, None
+
+    # ------------------------------------------------------------------ whole sequences
+    def run(self, sequence, theta0: torch.Tensor | None = None, progress: bool = True,
+            checkpoint: str | None = None, checkpoint_every: int = 10,
+            stop_after: int | None = None) -> Track:
+        """Track every frame of a :class:`~torchmocap.data.Sequence`.
+
+        Args:
+            sequence: observations (and ground truth, whose frame-0 pose starts the track unless
+                ``theta0`` is given).
+            progress: show a tqdm progress bar.
+            checkpoint: file to save the state to every ``checkpoint_every`` frames; when it
+                exists the run resumes from it (same seed: same track as an uninterrupted run).
+            stop_after: stop after this many frames (to simulate an interruption).
+        """
+        from tqdm import tqdm
+
+        tracking = None
+        if self.uses_sensors:
+            if sequence.imu is None:
+                raise MissingObservationError(
+                    f"tracker {self.cfg.method!r} needs IMUs; the sequence has "
+                    f"{sequence.modalities}")
+            tracking = torch.tensor([i for i, t in enumerate(sequence.imu.tracking.tolist())
+                                     if t])
+        if sequence.silhouettes is None:
+            raise MissingObservationError(
+                f"tracker {self.cfg.method!r} needs silhouettes; the sequence has "
+                f"{sequence.modalities}")
+        if theta0 is None:
+            if sequence.ground_truth is None:
+                raise ValueError("theta0: required when the sequence has no ground truth")
+            theta0 = sequence.ground_truth.theta[0]
+        T = sequence.num_frames
+        state = None
+        if checkpoint is not None and os.path.exists(checkpoint):
+            state = self.load_checkpoint(checkpoint)
+        if state is None:
+            state = self.init(theta0, frame_observation(sequence.frame(0), tracking))
+        start = state.frame + 1
+        bar = tqdm(range(start, T), disable=not progress, desc=f"track[{self.cfg.method}]",
+                   unit="frame")
+        done = 0
+        for t in bar:
+            state, _, info = self.step(state, frame_observation(sequence.frame(t), tracking))
+            bar.set_postfix(s=f"{info['seconds']:.2f}")
+            done += 1
+            if checkpoint is not None and (t % checkpoint_every == 0 or t == T - 1):
+                self.save_checkpoint(state, checkpoint)
+            if stop_after is not None and done >= stop_after:
+                if checkpoint is not None:
+                    self.save_checkpoint(state, checkpoint)
+                break
+        secs = [i["seconds"] for i in state.infos if "seconds" in i]
+        return Track(theta=torch.stack(state.estimates), infos=state.infos,
+                     seconds_per_frame=float(sum(secs) / max(len(secs), 1)))
+
+    def save_checkpoint(self, state: TrackState, path: str) -> None:
+        """Atomically write the state (and the sensor calibration) to ``path``."""
+        payload = {"state": state.__dict__, "method": self.cfg.method, "seed": self.seed,
+                   "sensor_to_bone": None if self.manifold is None
+                   else self.manifold.sensor_to_bone.clone()}
+        tmp = f"{path}.tmp"
+        torch.save(payload, tmp)
+        os.replace(tmp, path)
+
+    def load_checkpoint(self, path: str) -> TrackState:
+        """Read a state written by :meth:`save_checkpoint` (same method and seed required)."""
+        payload = torch.load(path, weights_only=False)
+        if payload.get("method") != self.cfg.method or payload.get("seed") != self.seed:
+            raise ValueError(f"checkpoint {path}: written by method {payload.get('method')!r} "
+                             f"seed {payload.get('seed')}, not {self.cfg.method!r} seed "
+                             f"{self.seed}")
+        if self.manifold is not None and payload["sensor_to_bone"] is not None:
+            self.manifold.sensor_to_bone = payload["sensor_to_bone"]
+        return TrackState(**payload["state"])
