@@ -359,10 +359,15 @@ class VonMisesFisher(Distribution):
             r = torch.sqrt(dw * (2 - dw))  # sqrt(1 - W^2) without cancellation
             x = torch.cat([(1 - dw)[:, None], r[:, None] * v], dim=-1)
             if not self._mean_is_e1:
-                mu = self.loc.expand(shape).reshape(-1, p)
+                shared = self.loc.numel() == p  # one mean for every sample: (p,) vectors
+                mu = self.loc.reshape(1, p) if shared else self.loc.expand(shape).reshape(-1, p)
                 s = torch.where(mu[:, :1] < 0, -1.0, 1.0).to(mu)
                 u = s * mu
                 u[:, 0] += 1  # u = e1 + sign(mu_1) mu, |u|^2 = 2 (1 + |mu_1|)
-                coef = (u * x).sum(-1, keepdim=True) / u[:, :1]  # 2 u.x / |u|^2
-                x = -s * (x - coef * u)  # (-s H) e1 = mu
+                if shared:  # x - (2 u.x / |u|^2) u, with the constants folded: one GEMV
+                    coef = x @ (u[0] / u[0, 0])
+                    x = torch.addr(x, coef, u[0], alpha=-1.0).mul_(-s[0, 0])
+                else:
+                    coef = (u * x).sum(-1, keepdim=True) / u[:, :1]  # 2 u.x / |u|^2
+                    x = -s * (x - coef * u)  # (-s H) e1 = mu
             return x.reshape(shape)
