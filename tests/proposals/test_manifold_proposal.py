@@ -74,7 +74,8 @@ class TestManifoldProposal:
     @pytest.mark.parametrize("noise", NOISE_MODELS)
     def test_smoke(self, setup, noise):
         sk, m, th = setup
-        prop = ManifoldProposal(m, active_std=0.05, noise=noise)
+        prop = ManifoldProposal(m, active_std=0.05, noise=noise, compute_residual=True)
+        assert not ManifoldProposal(m, noise=noise).compute_residual  # orthogonal axes: off
         ctx = ProposalContext(previous=th, sensors=m.sensor_orientations(th))
         out = prop.sample(ctx, 50, torch.Generator().manual_seed(0))
         assert out.particles.shape == (50, 31) and out.particles.dtype == F64

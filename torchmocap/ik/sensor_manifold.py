@@ -443,9 +443,11 @@ class SensorManifold(nn.Module):
             left = R_ts
             right = C2 if C2 is not None else torch.eye(3, dtype=dtype, device=R_ts.device)
             right = right.expand(S, 3, 3)
-            # coef[s, i, j, ab] = sum_kl left[s, i, k] Q[k, l, ab] right[s, l, j] (two matmuls)
-            X1 = (left @ Q.reshape(3, 48)).reshape(S, 3, 3, 16)  # [s, i, l, ab]
-            coef = (X1.permute(0, 1, 3, 2) @ right[:, None]).permute(0, 1, 3, 2)
+            # coef[s, i, j, ab] = sum_kl left[s, i, k] Q[k, l, ab] right[s, l, j]; broadcast
+            # sums (a GEMM call costs ~100 us here for these 720 numbers)
+            Qf = Q.reshape(1, 1, 3, 3, 16)
+            X1 = (left[:, :, :, None, None] * Qf).sum(2)  # [s, i, l, ab]
+            coef = (X1[:, :, :, None, :] * right[:, None, :, :, None]).sum(2)  # [s, i, j, ab]
             coef = coef.reshape(S, 9, 16)
             q = noise.expand(B, S, 4) if noise.dim() == 2 else noise.reshape(B, S, 4)
             qq = (q[..., :, None] * q[..., None, :]).reshape(B, S, 16).permute(1, 2, 0)
