@@ -95,7 +95,6 @@ def run(cfg: DictConfig, out: Path) -> dict:
 
         return run_bodytrack(cfg, out)
     import numpy as np
-    import torch
 
     from torchmocap.body import CapsuleBody
     from torchmocap.filters.tracker import Tracker

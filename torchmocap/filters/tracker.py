@@ -387,7 +387,7 @@ class Tracker:
             x0,
             layers=cfg.layers,
             selection=cfg.selection,
-            diffusion=GeometricDiffusion(sig_a, cfg.diffusion_decay),
+            diffusion=self._diffusion(sig_a),
             lower=self.lower[act],
             upper=self.upper[act],
             decode=decode,
