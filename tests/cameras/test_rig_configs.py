@@ -1,4 +1,4 @@
-"""The conf/rig Hydra options compose and instantiate into the advertised rigs."""
+"""The torchmocap/conf/rig Hydra options compose and instantiate into the advertised rigs."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from hydra.utils import instantiate
 
 from torchmocap.cameras import CameraRig
 
-CONF = Path(__file__).resolve().parents[2] / "conf"
+CONF = Path(__file__).resolve().parents[2] / "torchmocap" / "conf"
 F64 = torch.float64
 
 
