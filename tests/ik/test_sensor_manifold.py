@@ -250,6 +250,20 @@ class TestSensorManifold:
         grad = torch.autograd.grad(out[:, m.passive_index[1]].sum(), xa)[0]
         assert float(grad.abs().sum()) > 0
 
+    @pytest.mark.slow
+    def test_compiled_matches_eager(self):
+        """torch.compile'd g^{-1} core (opt-in) gives the eager answer (compiles ~30 s)."""
+        m = SensorManifold(human31())
+        g = torch.Generator().manual_seed(13)
+        th = _random_poses(m.skeleton, 64, g, dtype=torch.float32)
+        q = torch.nn.functional.normalize(torch.randn(64, 5, 4, generator=g), dim=-1)
+        S = m.sensor_orientations(th[0])
+        ref = m.inverse(m(th), S, noise=q, reference=th)
+        m.compile_inverse()
+        got = m.inverse(m(th), S, noise=q, reference=th)
+        assert torch.allclose(got.theta, ref.theta, atol=1e-5)
+        assert torch.equal(got.within_limits, ref.within_limits)
+
     def test_module_device_dtype(self, sk64):
         m = SensorManifold(human31())
         assert m.sensor_to_bone.dtype == torch.float32

@@ -507,7 +507,7 @@ class SensorManifold(nn.Module):
                 sensor_rotations(noise, S)  # same checks (unit quaternions / shape)
         else:
             R_ts = quaternion_to_matrix(sensors) if sensors.shape[-1] == 4 else sensors
-        dtype, device = x_a.dtype, x_a.device
+        dtype = x_a.dtype
         R_ts = R_ts.to(dtype)
         if noise is not None:
             noise = noise.to(dtype)
@@ -521,8 +521,6 @@ class SensorManifold(nn.Module):
             R_ts = R_ts.expand(*batch, S, 3, 3).reshape(B, S, 3, 3)
         if noise is not None and len(nb) and tuple(nb) != (B,):
             noise = noise.expand(*batch, *noise.shape[len(nb):]).reshape(B, *noise.shape[len(nb):])
-        Breq = self._soa_bone_requests(R_ts, noise, B, sensor_frame)  # (3, 3, S, B)
-
         if reference is not None:
             if reference.shape[-1] != self.num_dofs:
                 raise ValueError(f"reference: expected shape (*, {self.num_dofs}), got "
@@ -530,10 +528,44 @@ class SensorManifold(nn.Module):
             ref = reference.to(dtype).reshape(-1, self.num_dofs)
             if ref.shape[0] not in (1, B):
                 ref = reference.to(dtype).expand(*batch, self.num_dofs).reshape(B, -1)
-            ref_p = ref.t().contiguous()[self.passive_index]  # (S, 3, B or 1)
         else:
-            ref_p = None
+            ref = None
+        solve = self.__dict__.get("_solve_impl") or self._solve
+        theta, residual, within, gimbal = solve(xa, R_ts, noise, ref, compute_residual,
+                                                sensor_frame)
+        return ManifoldSolution(
+            theta=theta.reshape(*batch, self.num_dofs),
+            residual=None if residual is None else residual.t().reshape(*batch, S),
+            within_limits=within.t().reshape(*batch, S),
+            gimbal=gimbal.t().reshape(*batch, S),
+        )
 
+    def compile_inverse(self, **kwargs) -> SensorManifold:
+        """Compile the ``g^{-1}`` core with ``torch.compile(dynamic=True, **kwargs)``.
+
+        The first call per input signature compiles (tens of seconds on a CPU); afterwards
+        the ~150 small tensor operations run as a few fused kernels. Returns ``self``."""
+        self.__dict__["_solve_impl"] = torch.compile(self._solve, dynamic=True, **kwargs)
+        return self
+
+    def _solve(
+        self,
+        xa: torch.Tensor,
+        R_ts: torch.Tensor,
+        noise: torch.Tensor | None,
+        ref: torch.Tensor | None,
+        compute_residual: bool,
+        sensor_frame: bool,
+    ):
+        """Core of :meth:`inverse` on flat inputs: ``xa (B, d)``, ``R_ts (S, 3, 3)`` or
+        ``(B, S, 3, 3)``, ``noise (B, S, 4 | 3, 3)`` or None, ``ref (1 | B, D)`` or None.
+        Returns ``theta (B, D)``, ``residual (S, B)`` or None, ``within (S, B)``,
+        ``gimbal (S, B)``."""
+        S = self.num_sensors
+        B = xa.shape[0]
+        dtype, device = xa.dtype, xa.device
+        Breq = self._soa_bone_requests(R_ts, noise, B, sensor_frame)  # (3, 3, S, B)
+        ref_p = ref.t().contiguous()[self.passive_index] if ref is not None else None
         loc = self._soa_local_rotations(xa)  # (3, 3, N+1, B)
         # X = R_pj^T B_req R_cj^T with R_pj = U A (U: upstream bone request, A: active chain)
         X = Breq
@@ -585,15 +617,8 @@ class SensorManifold(nn.Module):
         passive_flat = chosen.permute(2, 1, 0).reshape(B, 3 * S)
         theta = torch.cat([xa, passive_flat], dim=-1).index_select(-1, self._assemble)
 
-        residual = None
-        if compute_residual:
-            residual = self._soa_residual(chosen, X, A, Rc).t().reshape(*batch, S)
-        return ManifoldSolution(
-            theta=theta.reshape(*batch, self.num_dofs),
-            residual=residual,
-            within_limits=within.t().reshape(*batch, S),
-            gimbal=gimbal.t().reshape(*batch, S),
-        )
+        residual = self._soa_residual(chosen, X, A, Rc) if compute_residual else None
+        return theta, residual, within, gimbal
 
     def _soa_residual(self, chosen, L_req, A, Rc) -> torch.Tensor:
         """Angle ``(S, B)`` between achieved and requested sensor-bone orientations.
