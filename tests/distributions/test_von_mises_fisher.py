@@ -80,6 +80,19 @@ class TestVonMisesFisher:
         with pytest.raises(ValueError, match="value"):
             d.log_prob(torch.zeros(3))
 
+    def test_rejection_cap(self):
+        """The rejection loop is capped: with one round, ~1/3 of 1000 entries stay rejected and
+        the sampler raises instead of looping or returning garbage; the default cap fills all."""
+        g = torch.Generator().manual_seed(4)
+        d = VonMisesFisher(torch.tensor(E1), torch.tensor(1000.0), max_rounds=1)
+        with pytest.raises(RuntimeError, match="rejected"):
+            d.sample((100000,), generator=g)
+        kap = torch.full((1000,), 1000.0)
+        with pytest.raises(RuntimeError, match="rejected"):
+            VonMisesFisher(torch.tensor(E1), kap, max_rounds=1).sample(generator=g)
+        x = VonMisesFisher(torch.tensor(E1), kap).sample((50,), generator=g)
+        assert torch.isfinite(x).all() and x.shape == (50, 1000, 4)
+
     def test_reproducible_with_generator(self):
         d = VonMisesFisher(torch.tensor([0.0, 0.6, 0.0, 0.8]), torch.tensor(50.0))
         a = d.sample((100,), generator=torch.Generator().manual_seed(3))
