@@ -31,6 +31,8 @@ __all__ = [
     "project_capsules",
     "silhouette_energy",
     "prepare_silhouettes",
+    "render_capsule_silhouettes",
+    "silhouette_iou",
 ]
 
 
@@ -243,3 +245,35 @@ class SilhouetteLikelihood(nn.Module):
 
     def forward(self, theta: torch.Tensor, obs: SilhouetteObservation) -> torch.Tensor:
         return -self.weight * self.energy(theta, obs)
+
+
+def render_capsule_silhouettes(body, rig, theta: torch.Tensor, chunk: int = 20000
+                               ) -> torch.Tensor:
+    """Exact capsule-model silhouettes ``(C, H, W)`` bool of one pose ``theta (D,)``.
+
+    Every pixel centre is tested against every projected capsule (the same stadium model the
+    likelihood uses), in chunks of pixels. Used for overlays, IoU reports and test oracles.
+    """
+    ep = body.endpoints(body.skeleton(theta[None]))
+    ends, rpx, front = project_capsules(ep, body.radii, rig)
+    rpx = torch.where(front[..., None], rpx, torch.full_like(rpx, -1e3))
+    sizes = {tuple(int(v) for v in s) for s in rig.image_size.tolist()}
+    if len(sizes) != 1:
+        raise ValueError(f"rig: all cameras need one image size, got {sorted(sizes)}")
+    W, H = sizes.pop()
+    ys, xs = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    q = torch.stack([xs + 0.5, ys + 0.5], -1).reshape(-1, 2).to(ep.dtype)
+    C = ends.shape[1]
+    out = torch.empty(C, H * W, dtype=torch.bool)
+    for a in range(0, H * W, chunk):
+        qq = q[a:a + chunk][None].expand(C, -1, -1)
+        out[:, a:a + chunk] = _coverage_margin(qq, ends, rpx, smooth=False)[0] > 0
+    return out.reshape(C, H, W)
+
+
+def silhouette_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Per-view intersection over union of boolean masks ``(C, H, W)``: ``(C,)``."""
+    a, b = a.bool(), b.bool()
+    inter = (a & b).flatten(1).sum(-1).double()
+    union = (a | b).flatten(1).sum(-1).double()
+    return inter / union.clamp_min(1)
