@@ -13,6 +13,7 @@ from torchmocap.data.scenario import known_scenarios
 from torchmocap.data.silhouettes import (
     add_boundary_noise,
     add_clutter,
+    dilate,
     drop_views,
     punch_holes,
     shadow_points,
@@ -107,6 +108,12 @@ class TestScenario:
 
 
 class TestSilhouetteCorruptions:
+    def test_dilate_matches_max_pool(self):
+        m = torch.rand(5, 40, 50, generator=_gen()) < 0.05
+        for w in (1, 2, 3):
+            ref = torch.nn.functional.max_pool2d(m.float()[:, None], 2 * w + 1, 1, w)[:, 0] > 0
+            assert torch.equal(dilate(m, w), ref)
+
     def test_boundary_noise_stays_at_the_contour(self):
         m = _disc_masks()
         n = add_boundary_noise(m, 0.5, 1, _gen())

@@ -63,53 +63,63 @@ def _check_inputs(pixels: Tensor, depth: Tensor, faces: Tensor) -> None:
 
 
 def _triangle_setup(pixels: Tensor, depth: Tensor, faces: Tensor, width: int, height: int):
-    """Per-triangle bounding boxes and edge-function coefficients (normalised by the area)."""
+    """Triangles whose bounding box holds pixel centres, with their edge-function coefficients.
+
+    Returns ``ids (K,)`` flat (image · F + face) indices, candidate counts ``n (K,)``, box corners
+    ``xmin, ymin``, box widths ``w`` and ``coef (K, 12)``: rows of the normalised edge functions
+    ``λ_i(p) = A_i px + B_i py + C_i`` (``A``, ``B``, ``C``, 3 each) and the vertices' ``1/z``.
+    Coefficients are only formed for the triangles that cover at least one pixel centre (most
+    triangles of a dense mesh are smaller than a pixel).
+    """
     tri = pixels[:, faces]  # (B, F, 3, 2)
-    z = depth[:, faces]  # (B, F, 3)
     x, y = tri[..., 0], tri[..., 1]
-    x0, x1, x2 = x.unbind(-1)
-    y0, y1, y2 = y.unbind(-1)
-    area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)  # twice the signed area
-    ok = (z > _NEAR).all(-1) & (area.abs() > 1e-12) & torch.isfinite(area)
-    safe = torch.where(ok, area, torch.ones_like(area))
-    # λ_i(p) = A_i px + B_i py + C_i with λ_0 from the edge (1, 2), etc.
-    A = torch.stack([y1 - y2, y2 - y0, y0 - y1], -1) / safe[..., None]
-    Bc = torch.stack([x2 - x1, x0 - x2, x1 - x0], -1) / safe[..., None]
-    C = torch.stack([x1 * y2 - x2 * y1, x2 * y0 - x0 * y2, x0 * y1 - x1 * y0], -1) / safe[..., None]
-    xmin = torch.ceil(x.amin(-1) - 0.0).clamp(0, width - 1)
-    xmax = torch.floor(x.amax(-1)).clamp(-1, width - 1)
-    ymin = torch.ceil(y.amin(-1)).clamp(0, height - 1)
-    ymax = torch.floor(y.amax(-1)).clamp(-1, height - 1)
-    inside_img = (x.amax(-1) >= 0) & (x.amin(-1) <= width - 1) & (y.amax(-1) >= 0) & \
-        (y.amin(-1) <= height - 1)
+    x_lo, x_hi = x.amin(-1), x.amax(-1)
+    y_lo, y_hi = y.amin(-1), y.amax(-1)
+    xmin = torch.ceil(x_lo).clamp(0, width - 1)
+    xmax = torch.floor(x_hi).clamp(-1, width - 1)
+    ymin = torch.ceil(y_lo).clamp(0, height - 1)
+    ymax = torch.floor(y_hi).clamp(-1, height - 1)
     w = (xmax - xmin + 1).clamp_min(0)
     h = (ymax - ymin + 1).clamp_min(0)
-    ok = ok & inside_img
-    n = torch.where(ok, w * h, torch.zeros_like(w)).long()
-    coef = torch.cat([A, Bc, C, 1.0 / z.clamp_min(_NEAR)], -1)  # (B, F, 12)
-    return n, xmin.long(), ymin.long(), w.long(), coef
+    inside_img = (x_hi >= 0) & (x_lo <= width - 1) & (y_hi >= 0) & (y_lo <= height - 1)
+    n = torch.where(inside_img, w * h, torch.zeros_like(w)).reshape(-1)
+    ids = (n > 0).nonzero().squeeze(-1)
+    F = faces.shape[0]
+    t = tri.reshape(-1, 3, 2)[ids]  # (K, 3, 2)
+    z = depth[torch.div(ids, F, rounding_mode="floor")[:, None], faces[ids % F]]  # (K, 3)
+    (x0, y0), (x1, y1), (x2, y2) = t[:, 0].unbind(-1), t[:, 1].unbind(-1), t[:, 2].unbind(-1)
+    area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)  # twice the signed area
+    ok = (z > _NEAR).all(-1) & (area.abs() > 1e-12) & torch.isfinite(area)
+    inv = 1.0 / torch.where(ok, area, torch.ones_like(area))
+    coef = torch.stack([y1 - y2, y2 - y0, y0 - y1, x2 - x1, x0 - x2, x1 - x0,
+                        x1 * y2 - x2 * y1, x2 * y0 - x0 * y2, x0 * y1 - x1 * y0], -1) * inv[:, None]
+    coef = torch.cat([coef, 1.0 / z.clamp_min(_NEAR)], -1)  # (K, 12)
+    keep = ok.nonzero().squeeze(-1)
+    ids = ids[keep]
+    return (ids, n[ids].long(), xmin.reshape(-1)[ids].long(), ymin.reshape(-1)[ids].long(),
+            w.reshape(-1)[ids].long(), coef[keep])
 
 
 def _candidates(pixels: Tensor, depth: Tensor, faces: Tensor, width: int, height: int,
                 eps: float) -> _Candidates:
-    B, F = pixels.shape[0], faces.shape[0]
-    n, xmin, ymin, w, coef = _triangle_setup(pixels, depth, faces, width, height)
-    n = n.reshape(-1)
+    F = faces.shape[0]
+    tids, n, xmin, ymin, w, coef = _triangle_setup(pixels, depth, faces, width, height)
     total = int(n.sum())
     dev = pixels.device
-    ids = torch.repeat_interleave(torch.arange(B * F, device=dev), n, output_size=total)
+    local = torch.repeat_interleave(torch.arange(tids.shape[0], device=dev), n,
+                                    output_size=total)
     start = torch.cumsum(n, 0) - n
-    k = torch.arange(total, device=dev) - start[ids]
-    wi = w.reshape(-1)[ids]
-    px = xmin.reshape(-1)[ids] + k % wi
-    py = ymin.reshape(-1)[ids] + torch.div(k, wi, rounding_mode="floor")
-    c = coef.reshape(B * F, 12)[ids]
+    k = torch.arange(total, device=dev) - start[local]
+    wi = w[local]
+    px = xmin[local] + k % wi
+    py = ymin[local] + torch.div(k, wi, rounding_mode="floor")
+    c = coef[local]
     pxf, pyf = px.to(c.dtype), py.to(c.dtype)
     bary = c[:, 0:3] * pxf[:, None] + c[:, 3:6] * pyf[:, None] + c[:, 6:9]
     inside = (bary >= -eps).all(-1)
-    ids, px, py, bary, c = ids[inside], px[inside], py[inside], bary[inside], c[inside]
-    return _Candidates(torch.div(ids, F, rounding_mode="floor"), ids % F, px, py, bary,
-                       c[:, 9:12])
+    ids = tids[local[inside]]
+    return _Candidates(torch.div(ids, F, rounding_mode="floor"), ids % F, px[inside],
+                       py[inside], bary[inside], c[inside, 9:12])
 
 
 def _eps(x: Tensor) -> float:

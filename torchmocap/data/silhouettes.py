@@ -7,12 +7,12 @@ and draw every random number from the given ``torch.Generator``.
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 __all__ = [
     "add_boundary_noise",
     "add_clutter",
+    "dilate",
     "drop_views",
     "paint_ellipses",
     "punch_holes",
@@ -72,18 +72,36 @@ def paint_ellipses(masks: Tensor, image: Tensor, cx: Tensor, cy: Tensor, rx: Ten
     return masks
 
 
+def dilate(masks: Tensor, width: int) -> Tensor:
+    """Binary dilation of ``(B, H, W)`` bool masks by a ``(2w+1)²`` square (shifted ORs)."""
+    out = masks.clone()
+    for i in range(1, width + 1):  # along x
+        out[..., i:] |= masks[..., :-i]
+        out[..., :-i] |= masks[..., i:]
+    rows = out.clone()
+    for i in range(1, width + 1):  # along y
+        out[..., i:, :] |= rows[..., :-i, :]
+        out[..., :-i, :] |= rows[..., i:, :]
+    return out
+
+
 def add_boundary_noise(masks: Tensor, prob: float, width: int, generator: torch.Generator
                        ) -> Tensor:
-    """Flip pixels within ``width`` px of the contour with probability ``prob``."""
+    """Flip pixels within ``width`` px of the contour with probability ``prob``.
+
+    The band is ``dilate(m) & ~erode(m)`` (square structuring element); random numbers are
+    drawn for band pixels only.
+    """
     if prob <= 0:
         return masks
-    m = masks.float()[:, None]
-    k = 2 * width + 1
-    dil = F.max_pool2d(m, k, stride=1, padding=width) > 0
-    ero = -F.max_pool2d(-m, k, stride=1, padding=width) > 0
-    band = (dil & ~ero)[:, 0]
-    flip = band & (_rand(masks.shape, generator, masks.device) < prob)
-    return masks ^ flip
+    band = dilate(masks, width) & dilate(~masks, width)
+    idx = band.reshape(-1).nonzero().squeeze(-1)
+    u = torch.rand(idx.shape[0], generator=generator, dtype=torch.float64).to(masks.device)
+    out = masks.clone()
+    flat = out.view(-1)
+    sel = idx[u < prob]
+    flat[sel] = ~flat[sel]
+    return out
 
 
 def punch_holes(masks: Tensor, rate: float, radius: tuple[float, float],

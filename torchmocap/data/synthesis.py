@@ -129,7 +129,8 @@ def body_surface(skeleton, theta: Tensor, kind: str = "skinned", chunk: int = 64
         from torchmocap.body.skinning import HUMAN31_BONE_MAP
 
         body = _skinned_body()
-        verts = torch.cat([body.pose_from_skeleton(skeleton, theta[a:a + chunk])
+        binding = body.bind(skeleton)  # not cached on the shared body (no growth per call)
+        verts = torch.cat([body.pose_kinematics(skeleton(theta[a:a + chunk]), binding)
                            for a in range(0, theta.shape[0], chunk)])
         bone = body.weights.argmax(-1)  # (V,) dominant mesh bone
         joint_of_bone = torch.tensor([names.index(HUMAN31_BONE_MAP[b]) for b in body.bone_names])
@@ -218,7 +219,8 @@ def synthesize(
         seed: integer seed (default 0 when neither is given).
         frames: synthesise the first ``frames`` frames (default: all).
         skeleton_map: skeleton map for fitting a clip (default: auto-detected).
-        chunk_frames: frames rendered at once (memory bound).
+        chunk_frames: frames rendered at once (memory bound; the image-noise stream depends on
+            it, so keep it fixed when comparing seeds).
 
     Returns:
         a :class:`~torchmocap.data.Sequence` with every enabled modality and ground truth.
