@@ -32,7 +32,11 @@ import torch
 from torchmocap.distributions import VonMisesFisher
 from torchmocap.filters.annealed import GeometricDiffusion, anneal, default_diffusion
 from torchmocap.filters.prediction import AutoregressivePredictor, RotationGroup
-from torchmocap.geometry import axis_angle_rotation, quaternion_to_matrix
+from torchmocap.geometry import (
+    axis_angle_rotation,
+    axis_angle_to_quaternion,
+    quaternion_to_matrix,
+)
 from torchmocap.ik.sensor_manifold import SensorManifold
 from torchmocap.likelihoods.appearance import appearance_energy, body_surface_pattern
 from torchmocap.likelihoods.orientation import orientation_energy
@@ -78,7 +82,9 @@ class TrackerConfig:
     reject_tries: int = 200
     predictor: str = "damped"
     damping: tuple[float, float] = (0.8, 0.3)
-    fg_samples: int = 100
+    fg_samples: int = 64
+    app_axial: int = 3
+    app_around: int = 4
     local_iterations: int = 40
     local_lr: float = 0.02
 
@@ -172,7 +178,8 @@ class Tracker:
                 f"tracker {self.cfg.method!r} needs tracking IMUs: pass sensors={{name: bone}}"
             )
         self.manifold = SensorManifold(sk, self.sensors) if self.uses_sensors else None
-        self.pattern = body_surface_pattern(body) if self.cfg.w_app > 0 else None
+        self.pattern = (body_surface_pattern(body, self.cfg.app_axial, self.cfg.app_around)
+                        if self.cfg.w_app > 0 else None)
         axes = torch.tensor(sk.joint_axes[0], dtype=torch.float64)
         root = sk.joint_dofs(sk.joint_names[0])[-3:]
 
@@ -342,20 +349,16 @@ class Tracker:
             return default_diffusion(self.cfg.layers)
         return GeometricDiffusion(sigma0, self.cfg.diffusion_decay)
 
-    def _noisy_sensors(self, R_ts: torch.Tensor, P: int, g: torch.Generator) -> torch.Tensor:
-        """Per-particle noisy copies ``(P, S, 3, 3)`` of measured ``R_TS (S, 3, 3)``."""
+    def _sensor_noise(self, P: int, S: int, g: torch.Generator) -> torch.Tensor | None:
+        """Per-particle sensor noise rotations ``R_w`` as quaternions ``(P, S, 4)`` (or None)."""
         cfg = self.cfg
-        S = R_ts.shape[0]
         if cfg.noise == "vmf":
             mu = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=self.dtype)
-            q = VonMisesFisher(mu, cfg.kappa).sample((P, S), generator=g)
-            return R_ts @ quaternion_to_matrix(q)
+            return VonMisesFisher(mu, cfg.kappa).sample((P, S), generator=g)
         if cfg.noise == "tangent":
             w = torch.randn(P, S, 3, generator=g, dtype=self.dtype) * (2.0 / math.sqrt(cfg.kappa))
-            from torchmocap.geometry import so3_exp
-
-            return R_ts @ so3_exp(w)
-        return R_ts.expand(P, S, 3, 3)
+            return axis_angle_to_quaternion(w)
+        return None
 
     def _track_manifold(self, pred, obs, image_energy, g):
         cfg = self.cfg
@@ -368,10 +371,9 @@ class Tracker:
         gstd = math.radians(cfg.gaussian_std_deg)
 
         def decode(xa):
-            sensors = self._noisy_sensors(R_ts, xa.shape[0], g)
-            theta = m.inverse(
-                xa, sensors, reference=pred, compute_residual=False, validate=False
-            ).theta
+            noise = self._sensor_noise(xa.shape[0], R_ts.shape[0], g)
+            theta = m.inverse(xa, R_ts, reference=pred, noise=noise, compute_residual=False,
+                              validate=False).theta
             if cfg.noise == "gaussian":
                 noise = (
                     torch.randn(theta.shape[0], passive.numel(), generator=g, dtype=theta.dtype)

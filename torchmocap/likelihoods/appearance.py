@@ -69,11 +69,9 @@ def appearance_energy(kin, body, pattern: dict, rig, images: torch.Tensor,
         img = img / 255.0
     x = pix[..., 0].floor().long().clamp(0, W - 1)
     y = pix[..., 1].floor().long().clamp(0, H - 1)
-    flat = img.reshape(C, H * W, 3)
-    idx = (y * W + x)  # (P, C, N)
-    P, _, N = idx.shape
-    cols = torch.gather(flat[None].expand(P, C, H * W, 3), 2,
-                        idx[..., None].expand(P, C, N, 3))  # (P, C, N, 3)
+    flat = img.reshape(C * H * W, 3)
+    cam = (torch.arange(C, device=x.device) * (H * W))[None, :, None]
+    cols = flat[(cam + y * W + x).reshape(-1)].reshape(*x.shape, 3)  # (P, C, N, 3)
     w = ok.to(dtype)[..., None]
     cnt = w.sum(1)  # (P, N, 1)
     mean = (cols * w).sum(1) / cnt.clamp_min(1)

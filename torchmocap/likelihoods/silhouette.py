@@ -136,10 +136,9 @@ def _lookup_nearest(masks, pts):
     x = pts[..., 0].floor().long()
     y = pts[..., 1].floor().long()
     inside = (x >= 0) & (x < W) & (y >= 0) & (y < H)
-    flat = masks.reshape(C, H * W)
-    idx = (y.clamp(0, H - 1) * W + x.clamp(0, W - 1))  # (P, C, N)
-    P = pts.shape[0]
-    vals = torch.gather(flat[None].expand(P, C, H * W), 2, idx)
+    cam = (torch.arange(C, device=pts.device) * (H * W))[None, :, None]
+    idx = cam + y.clamp(0, H - 1) * W + x.clamp(0, W - 1)  # (P, C, N)
+    vals = masks.reshape(-1)[idx.reshape(-1)].reshape(idx.shape)
     return vals * inside.to(vals.dtype)
 
 
