@@ -251,6 +251,19 @@ class TestSynthesize:
                          seed=0, frames=2)
         assert cap.depth.points.shape == (2, 100, 3) and bool((cap.depth.counts == 100).all())
 
+    def test_capsule_body_pipeline(self, subject):
+        sc = load_scenario("studio", image_size=[80, 60], body="capsules")
+        seq = synthesize(subject, sc, seed=0, frames=1)
+        assert seq.meta["body"] == "capsules"
+        assert int(seq.silhouettes[0].sum()) > 4 * 40 and int(seq.depth.counts[0]) > 100
+        assert int(seq.images[0][seq.silhouettes[0]].float().std()) > 5
+        sk = copy.deepcopy(subject.skeleton).float()
+        surf = body_surface(sk, subject.theta[:1].float(), "capsules")
+        # every capsule face is carried by the parent joint of its bone
+        names = surf.part_names
+        assert {names[i] for i in surf.face_part.unique().tolist()} == {
+            names[p] for p in set(sk.parents) if p >= 0}
+
     def test_exception(self, subject, clip):
         with pytest.raises(SynthesisError, match="frames"):
             synthesize(subject, "clean", frames=0)
