@@ -188,6 +188,9 @@ class TestSynthesize:
             assert torch.equal(x, y)
         assert not torch.equal(a.images, c.images)
         assert not torch.equal(a.imu.quaternions, c.imu.quaternions)
+        # rendering in other chunks gives the same sequence
+        f = synthesize(subject, sc, seed=3, frames=3, chunk_frames=1)
+        assert torch.equal(a.images, f.images) and torch.equal(a.silhouettes, f.silhouettes)
         # a generator is an alternative source of the seed
         g1, g2 = torch.Generator().manual_seed(9), torch.Generator().manual_seed(9)
         d = synthesize(subject, sc, generator=g1, frames=2)

@@ -219,8 +219,7 @@ def synthesize(
         seed: integer seed (default 0 when neither is given).
         frames: synthesise the first ``frames`` frames (default: all).
         skeleton_map: skeleton map for fitting a clip (default: auto-detected).
-        chunk_frames: frames rendered at once (memory bound; the image-noise stream depends on
-            it, so keep it fixed when comparing seeds).
+        chunk_frames: frames rendered at once (memory bound; results do not depend on it).
 
     Returns:
         a :class:`~torchmocap.data.Sequence` with every enabled modality and ground truth.
@@ -337,7 +336,9 @@ def synthesize(
                     img = torch.where(sh[..., None], img * (1 - sc.images.shadow_darkening
                                                             * (1 - sc.images.ambient)), img)
                 img = img * gain[a:b, None, None, None, None]
-                images[a:b] = to_uint8(img, sc.images.pixel_noise, g_img)
+                for t in range(a, b):  # one noise stream per frame: independent of chunking
+                    images[t] = to_uint8(img[t - a], sc.images.pixel_noise,
+                                         subgenerator(seed, f"images/{t}"))
         timings["render_s"] = time.perf_counter() - t1
         t1 = time.perf_counter()
         g_sil = subgenerator(seed, "silhouettes")
