@@ -114,20 +114,26 @@ def project_capsules(endpoints: torch.Tensor, radii: torch.Tensor, rig) -> tuple
 
 
 def _stadium_points(ends, rpx, m: int, n: int):
-    """Grid of ``m x n`` points inside each projected capsule: ``(P, C, B, m*n, 2)``."""
-    a, b = ends[..., 0, :], ends[..., 1, :]
-    d = b - a
-    L = d.norm(dim=-1, keepdim=True)
-    u = torch.where(L > 1e-6, d / L.clamp_min(1e-6), torch.tensor([1.0, 0.0], dtype=d.dtype,
-                                                                  device=d.device))
-    nrm = torch.stack([-u[..., 1], u[..., 0]], -1)
-    t = torch.linspace(0, 1, m, dtype=d.dtype, device=d.device)
-    s = torch.linspace(-0.75, 0.75, n, dtype=d.dtype, device=d.device)
-    r = rpx[..., 0:1] + (rpx[..., 1:2] - rpx[..., 0:1]) * t  # (P, C, B, m)
-    centre = a[..., None, :] + t[:, None] * d[..., None, :]  # (P, C, B, m, 2)
-    pts = centre[..., :, None, :] + (r[..., :, None, None] * s[:, None]) * nrm[..., None, None, :]
+    """Grid of ``m x n`` points inside each projected capsule: ``(P, C, B, m*n, 2)``, and the
+    stadium areas ``(P, C, B)``. Computed on x and y planes (one pass per term)."""
+    dt = ends.dtype
+    t = torch.linspace(0, 1, m, dtype=dt, device=ends.device)
+    s = torch.linspace(-0.75, 0.75, n, dtype=dt, device=ends.device)
+    T = t.repeat_interleave(n)  # (m*n,)
+    S = s.repeat(m)
+    ax, ay = ends[..., 0, 0, None], ends[..., 0, 1, None]
+    dx = ends[..., 1, 0, None] - ax
+    dy = ends[..., 1, 1, None] - ay
+    L = torch.sqrt(dx * dx + dy * dy)
+    inv = 1.0 / L.clamp_min(1e-6)
+    ux = torch.where(L > 1e-6, dx * inv, torch.ones_like(dx))
+    uy = dy * inv
+    r0, r1 = rpx[..., 0, None], rpx[..., 1, None]
+    off = (r0 + (r1 - r0) * T) * S  # (P, C, B, m*n) signed offset along the normal
+    px = ax + dx * T - uy * off
+    py = ay + dy * T + ux * off
     area = L[..., 0] * (rpx[..., 0] + rpx[..., 1]) + torch.pi * rpx.pow(2).mean(-1)
-    return pts.flatten(-3, -2), area
+    return torch.stack([px, py], -1), area
 
 
 def _lookup_nearest(masks, pts):
