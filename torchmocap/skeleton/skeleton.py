@@ -301,7 +301,9 @@ class Skeleton(nn.Module):
         produced = []  # articulated positions in the order the groups produce them
         groups = []
         for art_ids, slots in self._local_groups:
-            groups.append([sl.to(device) for sl in slots])
+            rot_index = self._rot_dof_index.to(device)
+            groups.append([(rot_index[sl.to(device)], self._K[sl][:, None].to(device),
+                            self._K2[sl][:, None].to(device)) for sl in slots])
             produced.extend(art_ids)
         produced.extend(self._art_no_axes)
         pos_in_produced = {a: k for k, a in enumerate(produced)}
@@ -456,24 +458,22 @@ class Skeleton(nn.Module):
             off = torch.einsum("jk,bkc->jbc", self._fold.to(dtype), o)  # (J, B, 3)
 
         # per-axis rotations: R_d = I + sin K_d + (1 - cos) K_d^2       (Dr, B, 3, 3)
-        ang = th[self._rot_dof_index]
-        s = torch.sin(ang)[..., None, None]
-        c1 = (1 - torch.cos(ang))[..., None, None]
-        K = self._K.to(dtype)[:, None]
-        K2 = self._K2.to(dtype)[:, None]
-        eye = torch.eye(3, dtype=dtype, device=device)
-        Rd = torch.addcmul(torch.addcmul(eye, s, K), c1, K2)
-
+        # per-axis rotations R = I + sin K + (1 - cos) K^2, evaluated slot by slot so that every
+        # gather is of angles (small), never of rotation matrices (whose index backward would
+        # allocate and fill a full-size zero tensor per gather)
         prog = self._program(device)
-        # local rotations of the articulated joints, in computation order  (A, B, 3, 3)
+        eye = torch.eye(3, dtype=dtype, device=device)
         local_parts = []
         for slots in prog["groups"]:
-            L = Rd[slots[0]]
-            for sl in slots[1:]:
-                L = L @ Rd[sl]
+            L = None
+            for dof_idx, K, K2 in slots:
+                ang = th.index_select(0, dof_idx)
+                R = torch.addcmul(torch.addcmul(eye, torch.sin(ang)[..., None, None],
+                                                K.to(dtype)), (1 - torch.cos(ang))[..., None, None],
+                                  K2.to(dtype))
+                L = R if L is None else L @ R
             local_parts.append(L)
         if prog["n_no_axes"]:
-            eye = torch.eye(3, dtype=dtype, device=device)
             local_parts.append(eye.expand(prog["n_no_axes"], B, 3, 3))
         local = torch.cat(local_parts, 0).index_select(0, prog["local_perm"])
         off = off.index_select(0, prog["comp_order"])  # offsets in computation order
@@ -518,7 +518,7 @@ class Skeleton(nn.Module):
         for d in self._trans_dofs:
             Jp[..., :, d % 3, d] = 1.0
         sub = self._subtree_masks()
-        for j, name in enumerate(self.joint_names):
+        for j in range(self.num_joints):
             axes = self.joint_axes[j]
             if not axes:
                 continue
