@@ -16,7 +16,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
-__all__ = ["main", "preview_image", "resolve_clip_path", "run"]
+__all__ = ["main", "preview_image", "resolve_clip_path", "run", "sequence_from_config"]
 
 
 class _UsageError(Exception):
@@ -36,8 +36,11 @@ def resolve_clip_path(path: str | None) -> Path:
     return p
 
 
-def run(cfg: Any, out_dir: Path) -> dict[str, Any]:
-    """Load the clip, fit the subject, synthesise, save ``out_dir/sequence`` and the preview."""
+def sequence_from_config(cfg: Any, min_frames: int = 1):
+    """The ``data`` node -> clip -> fitted subject -> synthesised :class:`Sequence`.
+
+    Shared by ``torchmocap-synth`` and ``torchmocap-track`` (same overrides, same errors).
+    """
     from torchmocap.data import load_scenario, synthesize
     from torchmocap.data.subject import fit_subject
     from torchmocap.io import load_motion
@@ -57,8 +60,8 @@ def run(cfg: Any, out_dir: Path) -> dict[str, Any]:
         clip = clip.resample(fps)
     frames = clip_cfg.frames
     if frames is not None:
-        if int(frames) < 1:
-            raise _UsageError(f"data.clip.frames: expected >= 1, got {frames}")
+        if int(frames) < min_frames:
+            raise _UsageError(f"data.clip.frames: expected >= {min_frames}, got {frames}")
         if int(frames) < clip.num_frames:
             clip = clip.slice(0, int(frames))
     subject = fit_subject(clip, skeleton_map=smap)
@@ -66,6 +69,12 @@ def run(cfg: Any, out_dir: Path) -> dict[str, Any]:
     seq.meta["clip"] = {"path": str(path), "asf": asf, "skeleton_map": smap,
                         "skip_frames": int(clip_cfg.skip_frames or 0), "fps": fps,
                         "frames": seq.num_frames, "family": subject.family}
+    return seq
+
+
+def run(cfg: Any, out_dir: Path) -> dict[str, Any]:
+    """Load the clip, fit the subject, synthesise, save ``out_dir/sequence`` and the preview."""
+    seq = sequence_from_config(cfg)
     seq.save(out_dir / "sequence", overwrite=True)
     out = {"sequence": str(out_dir / "sequence"), "frames": seq.num_frames,
            "modalities": seq.modalities}

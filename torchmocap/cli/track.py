@@ -44,40 +44,13 @@ def write_json_atomic(obj: Any, path: Path) -> None:
 
 
 def _sequence_from_config(cfg):
-    """Clip -> subject -> synthesised sequence, from the ``data`` node (as torchmocap-synth)."""
-    from torchmocap.cli.synth import resolve_clip_path
-    from torchmocap.data import load_scenario, synthesize
-    from torchmocap.data.subject import fit_subject
-    from torchmocap.io import load_motion
+    """Clip -> subject -> synthesised sequence, exactly as ``torchmocap-synth`` builds it."""
+    from torchmocap.cli import synth
 
-    clip_cfg = cfg.data.clip
     try:
-        path = resolve_clip_path(clip_cfg.path)
-    except Exception as e:  # the synth helper's usage error
+        return synth.sequence_from_config(cfg, min_frames=2)
+    except synth._UsageError as e:
         raise _UsageError(str(e)) from None
-    asf = hydra.utils.to_absolute_path(str(clip_cfg.asf)) if clip_cfg.asf else None
-    smap = clip_cfg.skeleton_map
-    if smap and Path(hydra.utils.to_absolute_path(str(smap))).is_file():
-        smap = hydra.utils.to_absolute_path(str(smap))
-    scen = str(cfg.data.scenario)
-    if scen.endswith((".yaml", ".yml")):
-        scen = hydra.utils.to_absolute_path(scen)
-    scenario = load_scenario(scen)
-    clip = load_motion(path, asf=asf, skip_frames=int(clip_cfg.skip_frames or 0),
-                       skeleton_map=smap)
-    fps = float(clip_cfg.fps) if clip_cfg.fps else scenario.fps
-    if abs(clip.fps - fps) > 1e-6:
-        clip = clip.resample(fps)
-    if clip_cfg.frames is not None:
-        n = int(clip_cfg.frames)
-        if n < 2:
-            raise _UsageError(f"data.clip.frames: expected >= 2 frames to track, got {n}")
-        if n < clip.num_frames:
-            clip = clip.slice(0, n)
-    subject = fit_subject(clip, skeleton_map=smap)
-    seq = synthesize(subject, scenario, seed=int(cfg.seed))
-    seq.meta["clip"] = {"path": str(path), "family": subject.family}
-    return seq
 
 
 def _tracker_config(cfg):
