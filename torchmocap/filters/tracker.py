@@ -31,6 +31,7 @@ import torch
 
 from torchmocap.distributions import VonMisesFisher
 from torchmocap.filters.annealed import GeometricDiffusion, anneal, default_diffusion
+from torchmocap.filters.local import minimise_local
 from torchmocap.filters.prediction import AutoregressivePredictor, RotationGroup
 from torchmocap.geometry import (
     axis_angle_rotation,
@@ -440,23 +441,17 @@ class Tracker:
         return diffusion
 
     def _track_local(self, pred, obs, image_energy):
+        """L / LS: Adam on the smooth image cost (+ orientation cost) from the prediction."""
         cfg = self.cfg
         ori = self._orientation_energy(obs) if cfg.method == "ls" else None
-        x = pred.clone().requires_grad_(True)
-        opt = torch.optim.Adam([x], lr=cfg.local_lr)
-        best, best_v = pred.clone(), math.inf
-        for _ in range(cfg.local_iterations):
-            opt.zero_grad()
-            v = image_energy(x[None])[0]
-            if ori is not None:
-                v = v + cfg.w_ori * ori(x[None])[0]
-            if float(v.detach()) < best_v:
-                best_v, best = float(v.detach()), x.detach().clone()
-            v.backward()
-            opt.step()
-            with torch.no_grad():
-                x.copy_(torch.maximum(torch.minimum(x, self.upper), self.lower))
-        return best, None
+
+        def energy(theta):
+            v = image_energy(theta)
+            return v if ori is None else v + cfg.w_ori * ori(theta)
+
+        res = minimise_local(energy, pred[None], method="adam", iterations=cfg.local_iterations,
+                             lower=self.lower, upper=self.upper, lr=cfg.local_lr)
+        return res.x[0], None
 
     # ------------------------------------------------------------------ whole sequences
     def run(self, sequence, theta0: torch.Tensor | None = None, progress: bool = True,
