@@ -257,3 +257,9 @@ class TestTwist:
         T = make_transform(R, t)
         assert T.shape == (5, 4, 4)
         assert torch.equal(T[:, 3], torch.tensor([0, 0, 0, 1.0], dtype=torch.float64).expand(5, 4))
+
+
+def test_geodesic_angle_gradient_finite_at_zero():
+    R = torch.eye(3, dtype=torch.float64).expand(2, 3, 3).clone().requires_grad_(True)
+    geodesic_angle(R, torch.eye(3, dtype=torch.float64).expand(2, 3, 3)).sum().backward()
+    assert torch.isfinite(R.grad).all()

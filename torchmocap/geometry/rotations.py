@@ -94,7 +94,8 @@ def geodesic_angle(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
     check_last_dims(R1, (3, 3), "R1")
     check_last_dims(R2, (3, 3), "R2")
     M = R1.transpose(-1, -2) @ R2
-    s = vee(M).norm(dim=-1)
+    v = vee(M)
+    s = (v * v).sum(-1).clamp_min(1e-30).sqrt()  # finite gradient at zero angle
     c = 0.5 * (M.diagonal(dim1=-2, dim2=-1).sum(-1) - 1)
     return torch.atan2(s, c)
 

@@ -124,7 +124,7 @@ def _stadium_points(ends, rpx, m: int, n: int):
     ax, ay = ends[..., 0, 0, None], ends[..., 0, 1, None]
     dx = ends[..., 1, 0, None] - ax
     dy = ends[..., 1, 1, None] - ay
-    L = torch.sqrt(dx * dx + dy * dy)
+    L = torch.sqrt((dx * dx + dy * dy).clamp_min(1e-12))  # finite gradient for point-like
     inv = 1.0 / L.clamp_min(1e-6)
     ux = torch.where(L > 1e-6, dx * inv, torch.ones_like(dx))
     uy = dy * inv
