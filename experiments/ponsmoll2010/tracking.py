@@ -40,8 +40,8 @@ CLIPS = {
                      "hdm05/HDM_bd.asf", 0, 0.5),
 }
 METHODS = ["l", "ls", "g", "gs", "rs", "p"]
-PAPER_FIG8 = {"p": "10.78 ± 8.5", "gs": "worse", "g": "worse", "rs": "worse", "ls": "worse",
-              "l": "worse"}
+PAPER_FIG8 = {"p": "10.78 ± 8.5", "gs": "not in Fig. 8", "g": "above P (bar)",
+              "rs": "not in Fig. 8", "ls": "above P (bar)", "l": "above P (bar)"}
 
 
 def load_subject(activity: str, frames: int, fps: float = 25.0):
