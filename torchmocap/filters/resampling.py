@@ -167,6 +167,17 @@ def multinomial_resample(
     return _search(cdf, u)
 
 
+def _strata_resample(log_w, generator, num, shared_offset: bool) -> torch.Tensor:
+    """``u_j = (j + U) / M`` with one ``U`` per row (systematic) or one per stratum (stratified)."""
+    check_log_weights(log_w)
+    m = _num(log_w, num)
+    cdf = _cdf(log_w)
+    base = torch.arange(m, dtype=cdf.dtype, device=cdf.device)
+    k = 1 if shared_offset else m
+    u = (base + _uniform((*log_w.shape[:-1], k), log_w, generator)) / m
+    return _search(cdf, u.clamp_(max=1.0 - torch.finfo(cdf.dtype).eps))
+
+
 def systematic_resample(
     log_w: torch.Tensor, generator: torch.Generator | None = None, num: int | None = None
 ) -> torch.Tensor:
@@ -181,12 +192,7 @@ def systematic_resample(
     Returns:
         ``(..., M)`` int64 ancestor indices, sorted ascending.
     """
-    check_log_weights(log_w)
-    m = _num(log_w, num)
-    cdf = _cdf(log_w)
-    base = torch.arange(m, dtype=cdf.dtype, device=cdf.device)
-    u = (base + _uniform((*log_w.shape[:-1], 1), log_w, generator)) / m
-    return _search(cdf, u.clamp_(max=1.0 - torch.finfo(cdf.dtype).eps))
+    return _strata_resample(log_w, generator, num, shared_offset=True)
 
 
 def stratified_resample(
@@ -201,12 +207,7 @@ def stratified_resample(
     Returns:
         ``(..., M)`` int64 ancestor indices, sorted ascending.
     """
-    check_log_weights(log_w)
-    m = _num(log_w, num)
-    cdf = _cdf(log_w)
-    base = torch.arange(m, dtype=cdf.dtype, device=cdf.device)
-    u = (base + _uniform((*log_w.shape[:-1], m), log_w, generator)) / m
-    return _search(cdf, u.clamp_(max=1.0 - torch.finfo(cdf.dtype).eps))
+    return _strata_resample(log_w, generator, num, shared_offset=False)
 
 
 def residual_resample(
