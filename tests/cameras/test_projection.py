@@ -17,6 +17,7 @@ from torchmocap.cameras import (
     make_ring_rig,
     max_monotonic_radius,
     project_points,
+    project_points_planar,
 )
 from torchmocap.geometry import random_rotation_matrix
 
@@ -124,6 +125,21 @@ class TestProject:
         rig = _random_rig(C=2, dist=True)
         pts = _points(4).requires_grad_(True)
         assert torch.autograd.gradcheck(lambda p: rig.project(p)[0], (pts,))
+
+    @pytest.mark.parametrize("dist", [False, True])
+    def test_feature_planar_matches_project(self, dist):
+        rig = make_ring_rig(3, image_size=(320, 240)).double() if not dist else _random_rig()
+        pts = torch.cat([_points(), torch.tensor([[0.0, -30.0, 1.0]], dtype=F64)])  # + behind
+        pix, depth, vis = rig.project(pts)
+        u, v, z, ok = rig.project_planar(pts)
+        assert u.shape == (rig.num_cameras, pts.shape[0])
+        torch.testing.assert_close(torch.stack([u, v], -1)[vis], pix[vis])
+        torch.testing.assert_close(z, depth)
+        assert torch.equal(ok, vis) and not bool(vis.all())
+        fn = project_points_planar(pts, rig.K, rig.R, rig.t, rig.dist, rig.image_size)
+        torch.testing.assert_close(fn[1], v)
+        with pytest.raises(ValueError, match="points"):
+            rig.project_planar(pts[None])
 
     def test_module(self):
         rig = _random_rig()

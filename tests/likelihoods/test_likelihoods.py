@@ -155,3 +155,144 @@ def test_gradient_of_hard_energy_not_needed_but_float64_ok(scene):
     sk.float()
     rig.float()
     assert e.dtype == torch.float64 and math.isfinite(e.item())
+
+
+def _stadium_oracle(rig, endpoints, radii, W, H):
+    """Per-pixel loop: inside iff within r(t) of the projected axis segment (float64 numpy)."""
+    import numpy as np
+
+    pix, depth, _ = rig.double().project(endpoints.double().reshape(-1, 3))
+    f = 0.5 * (rig.K[0, 0, 0] + rig.K[0, 1, 1]).item()
+    out = np.zeros((H, W), dtype=bool)
+    ys, xs = np.mgrid[0:H, 0:W]
+    q = np.stack([xs + 0.5, ys + 0.5], -1).astype(np.float64)
+    for b in range(endpoints.shape[0]):
+        z = depth[0, 2 * b:2 * b + 2].numpy()
+        if (z <= 1e-3).any():
+            continue  # behind the camera: covers nothing
+        a, e = pix[0, 2 * b].numpy(), pix[0, 2 * b + 1].numpy()
+        r0, r1 = f * radii[b].item() / z[0], f * radii[b].item() / z[1]
+        d = e - a
+        t = np.clip(((q - a) @ d) / max(d @ d, 1e-12), 0, 1)
+        dist = np.linalg.norm(q - (a + t[..., None] * d), axis=-1)
+        out |= dist < r0 + t * (r1 - r0)
+    return out
+
+
+def test_stadium_coverage_matches_a_per_pixel_oracle():
+    from torchmocap.cameras import CameraRig
+    from torchmocap.likelihoods.silhouette import _coverage_margin, _stadiums
+
+    W, H = 80, 60
+    K = torch.tensor([[[90.0, 0, 40], [0, 90, 30], [0, 0, 1]]], dtype=torch.float64)
+    rig = CameraRig(K, torch.eye(3, dtype=torch.float64)[None], torch.zeros(1, 3,
+                                                                            dtype=torch.float64),
+                    (W, H))
+    ep = torch.tensor([[[-0.3, -0.1, 2.0], [0.25, 0.15, 2.5]],   # tapered, oblique
+                       [[0.1, 0.3, 1.5], [0.1, 0.3, 1.5]],       # point-like: a disc
+                       [[0.0, 0.0, -2.0], [0.3, 0.0, -2.0]],     # behind the camera
+                       [[0.5, -0.2, 3.0], [0.2, -0.5, 0.5]]],    # steep in depth
+                      dtype=torch.float64)
+    radii = torch.tensor([0.08, 0.1, 0.5, 0.05], dtype=torch.float64)
+    ys, xs = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    q = torch.stack([xs + 0.5, ys + 0.5], -1).reshape(1, -1, 2).double()
+    for dt in (torch.float64, torch.float32):
+        st = _stadiums(ep[None].to(dt), radii.to(dt), rig.to(dt))
+        hard = (_coverage_margin(q.to(dt), st, smooth=False)[0, :, 0] > 0).reshape(H, W)
+        smooth = (_coverage_margin(q.to(dt), st, smooth=True)[0, :, 0] > 0).reshape(H, W)
+        oracle = torch.from_numpy(_stadium_oracle(rig.double(), ep, radii.double(), W, H))
+        assert oracle.sum() > 300  # the test scene covers a good part of the image
+        assert (hard != oracle).sum() <= 2 and (smooth != oracle).sum() <= 2
+    rig.double()
+
+
+def test_silhouette_energy_terms_closed_form():
+    """One axis-aligned capsule against a hand-made mask: both terms have known values."""
+    from torchmocap.cameras import CameraRig
+
+    W, H = 100, 60
+    K = torch.tensor([[[100.0, 0, 50], [0, 100, 30], [0, 0, 1]]])
+    rig = CameraRig(K, torch.eye(3)[None], torch.zeros(1, 3), (W, H))
+    # axis from pixel (30, 30) to (70, 30) at depth 2, radius 10 px (0.2 m * 100 / 2)
+    ep = torch.tensor([[[[-0.4, 0.0, 2.0], [0.4, 0.0, 2.0]]]])
+    radii = torch.tensor([0.2])
+    model = torch.zeros(1, H, W, dtype=torch.bool)
+    ys, xs = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    d = torch.where(xs < 30, torch.hypot(xs - 30, ys - 30),
+                    torch.where(xs > 70, torch.hypot(xs - 70, ys - 30), (ys - 30).abs()))
+    model[0] = d < 10
+    e_exact = silhouette_energy(ep, radii, rig, prepare_silhouettes(model, 400))
+    assert e_exact.item() == pytest.approx(0.0, abs=0.02)
+    # keep only the left half of the mask: half the model lies on background (m2i = 1/2;
+    # a dense axis sampling resolves it) and all remaining foreground is covered (i2m = 0)
+    half = model.clone()
+    half[0, :, 50:] = False
+    e_half = silhouette_energy(ep, radii, rig, prepare_silhouettes(half, 400), axis_samples=41)
+    assert e_half.item() == pytest.approx(0.25, abs=0.01)
+    # with the default 5 axis samples, 2 of 5 sample columns (x = 30, 40 | 50, 60, 70) are on
+    # the foreground: m2i = 3/5
+    e_half5 = silhouette_energy(ep, radii, rig, prepare_silhouettes(half, 400))
+    assert e_half5.item() == pytest.approx(0.3, abs=1e-6)
+    # extra foreground the model does not cover: i2m = uncovered fraction, m2i = 0
+    extra = model.clone()
+    extra[0, 2:18, 2:98] = True
+    frac_uncovered = int((extra & ~model).sum()) / int(extra.sum())
+    e_extra = silhouette_energy(ep, radii, rig, prepare_silhouettes(extra, 600))
+    assert 0.2 < frac_uncovered < 0.8
+    assert e_extra.item() == pytest.approx(0.5 * frac_uncovered, abs=0.02)
+
+
+def test_appearance_energy_matches_a_loop_oracle(scene):
+    from torchmocap.likelihoods.appearance import (
+        appearance_energy,
+        body_surface_pattern,
+        prepare_images,
+    )
+
+    sk, body, rig, th, _ = scene
+    g = torch.Generator().manual_seed(3)
+    C, (W, H) = rig.num_cameras, rig.image_size[0].tolist()
+    imgs = torch.randint(0, 256, (C, H, W, 3), generator=g, dtype=torch.uint8)
+    poses = th + 0.1 * torch.randn(3, sk.num_dofs, generator=g)
+    pattern = body_surface_pattern(body, 2, 3)
+    kin = sk(poses)
+    got = appearance_energy(kin, body, pattern, rig, imgs)
+    torch.testing.assert_close(appearance_energy(kin, body, pattern, rig, prepare_images(imgs)),
+                               got)
+    view_valid = torch.tensor([True, False, True, True])
+    got_vv = appearance_energy(kin, body, pattern, rig, imgs, view_valid)
+    centres = rig.camera_centers()
+    ep = body.endpoints(kin)
+    for p in range(3):
+        for vv, out in ((None, got), (view_valid, got_vv)):
+            variances = []
+            for i in range(pattern["bone"].shape[0]):
+                b = int(pattern["bone"][i])
+                n = kin.rotations[p, body.parent_index[b]] @ pattern["radial"][i].float()
+                a, e = ep[p, b, 0], ep[p, b, 1]
+                x = a + pattern["t"][i].float() * (e - a) + body.radii[b] * n
+                cols = []
+                for c in range(C):
+                    pix, _, vis = rig.project(x[None])
+                    if vv is not None and not vv[c]:
+                        continue
+                    if vis[c, 0] and float((centres[c] - x) @ n) > 0:
+                        u, v = pix[c, 0].floor().long().tolist()
+                        cols.append(imgs[c, v, u].double() / 255)
+                if len(cols) >= 2:
+                    variances.append(torch.stack(cols).var(0, unbiased=False).mean())
+            assert len(variances) > 10
+            assert out[p].item() == pytest.approx(torch.stack(variances).mean().item(), abs=1e-5)
+
+
+def test_appearance_pattern_layout_checked(scene):
+    from torchmocap.likelihoods.appearance import appearance_energy, body_surface_pattern
+
+    sk, body, rig, th, _ = scene
+    pattern = body_surface_pattern(body, 2, 2)
+    shuffled = {k: v.flip(0) for k, v in pattern.items()}
+    imgs = torch.zeros(rig.num_cameras, 240, 320, 3)
+    with pytest.raises(ValueError, match="bone-major"):
+        appearance_energy(sk(th[None]), body, shuffled, rig, imgs)
+    with pytest.raises(ValueError, match="axial"):
+        body_surface_pattern(body, 0, 2)

@@ -18,6 +18,7 @@ from torchmocap.cameras.projection import (
     look_at,
     max_monotonic_radius,
     project_points,
+    project_points_planar,
     world_to_camera,
 )
 from torchmocap.cameras.rig import (
@@ -44,6 +45,7 @@ __all__ = [
     "make_ring_rig",
     "max_monotonic_radius",
     "project_points",
+    "project_points_planar",
     "read_bouguet_cal",
     "read_bouguet_rig",
     "read_rig",

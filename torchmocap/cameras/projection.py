@@ -31,6 +31,7 @@ __all__ = [
     "look_at",
     "max_monotonic_radius",
     "project_points",
+    "project_points_planar",
     "world_to_camera",
 ]
 
@@ -197,12 +198,21 @@ def project_points(points: Tensor, K: Tensor, R: Tensor, t: Tensor, dist: Tensor
     """
     _check_last("points", points, (3,))
     C = _check_rig_params(K, dist, R, t)
+    distorted = dist is not None and bool((dist != 0).any())
+    if not distorted and bool((K[:, 2] == K.new_tensor([0.0, 0.0, 1.0])).all()):
+        # pinhole fast path: one (K R | K t) transform gives (z u, z v, z) directly
+        KR = K @ R
+        Kt = (K @ t[..., None])[..., 0]
+        ph = world_to_camera(points, KR, Kt)  # (*, C, N, 3)
+        depth = ph[..., 2]
+        pixels = ph[..., :2] / depth.clamp_min(_DEPTH_EPS).unsqueeze(-1)
+        return pixels, depth, _visible(pixels[..., 0], pixels[..., 1], depth, image_size, C)
     pc = world_to_camera(points, R, t)  # (*, C, N, 3)
     depth = pc[..., 2]
     z = depth.clamp_min(_DEPTH_EPS)
     xy = pc[..., :2] / z.unsqueeze(-1)
     visible = depth > _DEPTH_EPS
-    if dist is not None and bool((dist != 0).any()):
+    if distorted:
         rmax = max_monotonic_radius(dist)  # (C,)
         r2 = (xy * xy).sum(-1)
         visible = visible & (r2 < (rmax * rmax)[:, None])
@@ -220,15 +230,46 @@ def project_points(points: Tensor, K: Tensor, R: Tensor, t: Tensor, dist: Tensor
         u = fx * xy[..., 0] + s * xy[..., 1] + cx
         v = fy * xy[..., 1] + cy
         pixels = torch.stack([u, v], -1)
+    return pixels, depth, visible & _visible(pixels[..., 0], pixels[..., 1], depth, image_size, C)
+
+
+def _visible(u: Tensor, v: Tensor, depth: Tensor, image_size: Tensor | None, C: int) -> Tensor:
+    """In front of the camera and (with ``image_size``) inside ``[-0.5, W-0.5) x [-0.5, H-0.5)``;
+    ``u, v, depth (*, C, N)``."""
+    visible = depth > _DEPTH_EPS
     if image_size is not None:
         if image_size.shape != (C, 2):
             raise ValueError(f"image_size must have shape ({C}, 2) (width, height), got "
                              f"{tuple(image_size.shape)}")
-        w = image_size[:, 0, None].to(pixels.dtype)
-        h = image_size[:, 1, None].to(pixels.dtype)
-        u, v = pixels[..., 0], pixels[..., 1]
+        w = image_size[:, 0, None].to(u.dtype)
+        h = image_size[:, 1, None].to(u.dtype)
         visible = visible & (u >= -0.5) & (u < w - 0.5) & (v >= -0.5) & (v < h - 0.5)
-    return pixels, depth, visible
+    return visible
+
+
+def project_points_planar(points: Tensor, K: Tensor, R: Tensor, t: Tensor,
+                          dist: Tensor | None = None, image_size: Tensor | None = None
+                          ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """:func:`project_points` of a flat list ``points (M, 3)``, returned as planes.
+
+    Returns ``u, v, depth, visible``, each ``(C, M)``: the layout batched likelihoods reduce
+    over (views outermost, contiguous points). For a pinhole rig it is one matrix product
+    ``(K R | K t)`` followed by the perspective division.
+    """
+    if points.dim() != 2 or points.shape[-1] != 3:
+        raise ValueError(f"points: expected shape (M, 3), got {tuple(points.shape)}")
+    C = _check_rig_params(K, dist, R, t)
+    distorted = dist is not None and bool((dist != 0).any())
+    if distorted or not bool((K[:, 2] == K.new_tensor([0.0, 0.0, 1.0])).all()):
+        pix, depth, visible = project_points(points, K, R, t, dist, image_size)
+        return pix[..., 0], pix[..., 1], depth, visible
+    KR = (K @ R).reshape(3 * C, 3)
+    Kt = (K @ t[..., None]).reshape(3 * C, 1)
+    h = torch.addmm(Kt, KR, points.T).view(C, 3, -1)
+    depth = h[:, 2]
+    z = depth.clamp_min(_DEPTH_EPS)
+    u, v = h[:, 0] / z, h[:, 1] / z
+    return u, v, depth, _visible(u, v, depth, image_size, C)
 
 
 def backproject_pixels(pixels: Tensor, K: Tensor, R: Tensor, t: Tensor, dist: Tensor | None = None,

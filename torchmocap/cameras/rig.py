@@ -13,6 +13,7 @@ from torchmocap.cameras.projection import (
     camera_centers,
     look_at,
     project_points,
+    project_points_planar,
 )
 
 __all__ = ["CameraError", "CameraRig", "estimate_up_direction", "make_ceiling_rig",
@@ -128,6 +129,14 @@ class CameraRig(nn.Module):
         return project_points(points, self.K.to(points.dtype), self.R.to(points.dtype),
                               self.t.to(points.dtype),
                               self.dist.to(points.dtype) if distort else None, self.image_size)
+
+    def project_planar(self, points: Tensor, distort: bool = True
+                       ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``u, v, depth, visible`` planes ``(C, M)`` of world points ``(M, 3)``; see
+        :func:`project_points_planar`."""
+        dt = points.dtype
+        return project_points_planar(points, self.K.to(dt), self.R.to(dt), self.t.to(dt),
+                                     self.dist.to(dt) if distort else None, self.image_size)
 
     def forward(self, points: Tensor) -> Tensor:
         """Pixels ``(*, C, N, 2)`` of ``(*, N, 3)`` world points (with distortion)."""

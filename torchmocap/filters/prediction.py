@@ -100,15 +100,15 @@ def angles_from_matrix(
         M = to_matrix(t).to(torch.float64)
         return so3_log(M.transpose(-1, -2) @ Rd)
 
+    # the point and its six central-difference neighbours, evaluated in one batch
+    offsets = torch.cat([torch.zeros(1, 3, dtype=torch.float64, device=th.device),
+                         eye * h, -eye * h]).reshape(7, *([1] * (th.dim() - 1)), 3)
     for _ in range(iterations):
-        r = resid(th)
+        rr = resid(th + offsets)  # (7, ..., 3)
+        r = rr[0]
         if float(r.norm(dim=-1).max()) < tol:
             break
-        cols = []
-        for j in range(3):
-            e = eye[j] * h
-            cols.append((resid(th + e) - resid(th - e)) / (2 * h))
-        J = torch.stack(cols, dim=-1)  # (..., 3, 3)
+        J = ((rr[1:4] - rr[4:7]) / (2 * h)).movedim(0, -1)  # (..., 3, 3): dr_i / dθ_j
         JtJ = J.transpose(-1, -2) @ J
         mu = 1e-10 * (1.0 + JtJ.diagonal(dim1=-2, dim2=-1).sum(-1))
         step = torch.linalg.solve(

@@ -39,7 +39,11 @@ from torchmocap.geometry import (
     quaternion_to_matrix,
 )
 from torchmocap.ik.sensor_manifold import SensorManifold
-from torchmocap.likelihoods.appearance import appearance_energy, body_surface_pattern
+from torchmocap.likelihoods.appearance import (
+    appearance_energy,
+    body_surface_pattern,
+    prepare_images,
+)
 from torchmocap.likelihoods.orientation import orientation_energy
 from torchmocap.likelihoods.silhouette import prepare_silhouettes, silhouette_energy
 
@@ -221,6 +225,7 @@ class Tracker:
     def _image_energy(self, obs: dict, prepared, smooth: bool = False):
         cfg = self.cfg
         rig = self.rig
+        colours = prepare_images(obs["images"], self.dtype) if cfg.w_app > 0 else None
 
         def energy(theta: torch.Tensor) -> torch.Tensor:
             kin = self.skeleton(theta, check_finite=False)
@@ -228,7 +233,7 @@ class Tracker:
             v = cfg.w_silh * silhouette_energy(ep, self.body.radii, rig, prepared, smooth=smooth)
             if cfg.w_app > 0:
                 v = v + cfg.w_app * appearance_energy(
-                    kin, self.body, self.pattern, rig, obs["images"], prepared.view_valid
+                    kin, self.body, self.pattern, rig, colours, prepared.view_valid
                 )
             return v
 

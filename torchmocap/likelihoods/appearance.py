@@ -12,19 +12,30 @@ Shapes: ``P`` particles, ``C`` views, ``B`` capsules, ``N`` surface points.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 from torch import nn
 
-__all__ = ["AppearanceLikelihood", "appearance_energy", "body_surface_pattern"]
+__all__ = [
+    "AppearanceLikelihood",
+    "ColourObservation",
+    "appearance_energy",
+    "body_surface_pattern",
+    "prepare_images",
+]
 
 
 def body_surface_pattern(body, axial: int = 4, around: int = 6) -> dict[str, torch.Tensor]:
     """Body-fixed surface pattern of a :class:`~torchmocap.body.CapsuleBody`.
 
-    Returns tensors ``bone (N,)`` (capsule index), ``t (N,)`` position along the axis,
-    ``radial (N, 3)`` unit direction in the rest frame of the bone's parent joint.
+    ``axial x around`` points per capsule, bone-major (capsule ``b`` owns points
+    ``b*k .. b*k + k - 1`` with ``k = axial * around``). Returns tensors ``bone (N,)`` (capsule
+    index), ``t (N,)`` position along the axis, ``radial (N, 3)`` unit direction in the rest
+    frame of the bone's parent joint.
     """
+    if axial < 1 or around < 1:
+        raise ValueError(f"axial, around: expected integers >= 1, got {axial}, {around}")
     sk = body.skeleton
     rest = sk(sk.zero_pose(dtype=torch.float64)).positions
     a = rest[body.parent_index]
@@ -45,39 +56,91 @@ def body_surface_pattern(body, axial: int = 4, around: int = 6) -> dict[str, tor
     return {"bone": bone, "t": tt, "radial": rad}
 
 
-def appearance_energy(kin, body, pattern: dict, rig, images: torch.Tensor,
-                      view_valid: torch.Tensor | None = None) -> torch.Tensor:
-    """``V_app (P,)`` of poses ``kin`` against colour ``images (C, H, W, 3)`` (uint8 or [0, 1])."""
-    if images.dim() != 4 or images.shape[-1] != 3:
-        raise ValueError(f"images: expected shape (C, H, W, 3), got {tuple(images.shape)}")
-    dtype = kin.positions.dtype
-    ep = body.endpoints(kin)  # (P, B, 2, 3)
-    bone, t, radial = pattern["bone"], pattern["t"].to(dtype), pattern["radial"].to(dtype)
-    R = kin.rotations[:, body.parent_index[bone]]  # (P, N, 3, 3)
-    a, b = ep[:, bone, 0], ep[:, bone, 1]
-    n = (R @ radial[..., None])[..., 0]
-    pts = a + t[:, None] * (b - a) + body.radii.to(dtype)[bone][:, None] * n  # (P, N, 3)
-    pix, _, vis = rig.project(pts)  # (P, C, N, 2), (P, C, N)
-    centres = rig.camera_centers().to(dtype)  # (C, 3)
-    facing = ((centres[None, :, None] - pts[:, None]) * n[:, None]).sum(-1) > 0
-    ok = vis & facing
-    if view_valid is not None:
-        ok = ok & view_valid.to(ok.device)[None, :, None]
+def _per_bone(pattern: dict, num_bones: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``t (B, k)`` and ``radial (B, k, 3)`` of a bone-major pattern (typed error otherwise)."""
+    bone = pattern["bone"]
+    n = bone.shape[0]
+    k = n // max(num_bones, 1)
+    if k * num_bones != n or not torch.equal(
+            bone.cpu(), torch.arange(num_bones).repeat_interleave(k)):
+        raise ValueError(f"pattern: expected a bone-major layout with the same number of points "
+                         f"on each of the {num_bones} capsules (see body_surface_pattern)")
+    return pattern["t"].reshape(num_bones, k), pattern["radial"].reshape(num_bones, k, 3)
+
+
+@dataclass
+class ColourObservation:
+    """Colour images prepared once per frame for :func:`appearance_energy`.
+
+    Attributes:
+        planes: ``(3, C*H*W + 1)`` channel planes in [0, 1]; the extra last pixel is 0 and is
+            where unseen surface points read from.
+        shape: ``(C, H, W)``.
+    """
+
+    planes: torch.Tensor
+    shape: tuple[int, int, int]
+
+
+def prepare_images(images, dtype: torch.dtype = torch.float32) -> ColourObservation:
+    """Colour ``images (C, H, W, 3)`` (uint8 or [0, 1] floats) as a :class:`ColourObservation`.
+
+    Do it once per frame; :func:`appearance_energy` accepts either form.
+    """
+    if isinstance(images, ColourObservation):
+        return images if images.planes.dtype == dtype else ColourObservation(
+            images.planes.to(dtype), images.shape)
+    if not isinstance(images, torch.Tensor) or images.dim() != 4 or images.shape[-1] != 3:
+        raise ValueError(f"images: expected shape (C, H, W, 3), got "
+                         f"{tuple(getattr(images, 'shape', ()))}")
     C, H, W, _ = images.shape
-    img = images.to(dtype)
+    planes = torch.zeros(3, C * H * W + 1, dtype=dtype, device=images.device)
+    planes[:, :-1] = images.reshape(-1, 3).T
     if images.dtype == torch.uint8:
-        img = img / 255.0
-    x = pix[..., 0].floor().long().clamp(0, W - 1)
-    y = pix[..., 1].floor().long().clamp(0, H - 1)
-    flat = img.reshape(C * H * W, 3)
-    cam = (torch.arange(C, device=x.device) * (H * W))[None, :, None]
-    cols = flat[(cam + y * W + x).reshape(-1)].reshape(*x.shape, 3)  # (P, C, N, 3)
-    w = ok.to(dtype)[..., None]
-    cnt = w.sum(1)  # (P, N, 1)
-    mean = (cols * w).sum(1) / cnt.clamp_min(1)
-    var = (((cols - mean[:, None]) ** 2) * w).sum(1).sum(-1, keepdim=True) / cnt.clamp_min(1) / 3
-    seen = (cnt >= 2).to(dtype)
-    return ((var * seen).sum((1, 2)) / seen.sum((1, 2)).clamp_min(1))
+        planes /= 255.0
+    return ColourObservation(planes, (C, H, W))
+
+
+def appearance_energy(kin, body, pattern: dict, rig, images,
+                      view_valid: torch.Tensor | None = None) -> torch.Tensor:
+    """``V_app (P,)`` of poses ``kin`` against colour ``images (C, H, W, 3)`` (uint8 or [0, 1]),
+    or their :func:`prepare_images` form (no per-call conversion)."""
+    dtype = kin.positions.dtype
+    obs = prepare_images(images, dtype)
+    ep = body.endpoints(kin)  # (P, B, 2, 3)
+    P, B = ep.shape[:2]
+    t, radial = _per_bone(pattern, B)
+    t, radial = t.to(dtype), radial.to(dtype)
+    Rb = kin.rotations[:, body.parent_index]  # (P, B, 3, 3)
+    n = torch.einsum("pbij,bkj->pbki", Rb, radial)  # (P, B, k, 3) surface normals
+    a = ep[:, :, 0, None]
+    pts = torch.addcmul(a, t[None, :, :, None], ep[:, :, 1, None] - a)
+    pts = pts.add_(body.radii.to(dtype)[None, :, None, None] * n)
+    pts, n = pts.reshape(-1, 3), n.reshape(-1, 3)  # (M, 3) with M = P * N
+    # view-major planes (C, M): the reductions over views below run over a leading dim
+    u, v, _, vis = rig.project_planar(pts)
+    centres = rig.camera_centers().to(dtype)  # (C, 3)
+    # (c - x) . n > 0  <=>  c . n > x . n
+    ok = vis & (centres @ n.T > (pts * n).sum(-1))
+    if view_valid is not None:
+        ok = ok & view_valid.to(ok.device)[:, None]
+    C, H, W = obs.shape
+    # flat pixel index computed in floats: exact below 2^24 pixels in float32
+    it = dtype if C * H * W < 2**24 or dtype == torch.float64 else torch.float64
+    u, v = u.to(it), v.to(it)
+    base = (torch.arange(C, device=u.device, dtype=it) * (H * W))[:, None]
+    x = u.clamp(0, W - 1).floor_().add_(base)
+    idx = torch.addcmul(x, v.clamp(0, H - 1).floor_(), torch.full((), W, dtype=it))
+    idx = torch.where(ok, idx.long(), C * H * W)  # unseen -> the 0 pixel
+    cols = obs.planes.index_select(1, idx.reshape(-1)).reshape(3, C, -1)  # (3, C, M)
+    cnt = ok.sum(0).to(dtype)  # (M,)
+    s1 = cols.sum(1)  # (3, M)
+    s2 = (cols * cols).sum((0, 1))  # (M,)
+    inv = 1.0 / cnt.clamp_min(1)
+    # across-view variance per point, averaged over the channels: E|c|^2 - |E c|^2
+    var = ((s2 - (s1 * s1).sum(0) * inv) * inv / 3).clamp_min_(0).reshape(P, -1)
+    seen = (cnt >= 2).to(dtype).reshape(P, -1)
+    return (var * seen).sum(-1) / seen.sum(-1).clamp_min(1)
 
 
 class AppearanceLikelihood(nn.Module):

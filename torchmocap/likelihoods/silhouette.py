@@ -20,6 +20,7 @@ optimisation). Shapes: ``P`` particles, ``C`` views, ``B`` capsules, ``G`` foreg
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -41,7 +42,8 @@ class SilhouetteObservation:
     """Per-frame silhouette data prepared once and reused for every particle and layer.
 
     Attributes:
-        masks: ``(C, H, W)`` float foreground in [0, 1] (hard lookups).
+        masks: ``(C, H, W)`` float foreground in {0, 1}.
+        padded: ``(C, H+2, W+2)`` the masks with a one-pixel zero border (hard lookups).
         blurred: ``(C, 1, H, W)`` blurred masks for the smooth version.
         fg_pixels: ``(C, G, 2)`` sampled foreground pixel centres (x, y).
         fg_valid: ``(C, G)`` which samples exist (views with fewer foreground pixels pad).
@@ -49,6 +51,7 @@ class SilhouetteObservation:
     """
 
     masks: torch.Tensor
+    padded: torch.Tensor
     blurred: torch.Tensor
     fg_pixels: torch.Tensor
     fg_valid: torch.Tensor
@@ -90,8 +93,9 @@ def prepare_silhouettes(masks: torch.Tensor, num_samples: int = 150, blur: float
         b = F.conv2d(b, g.view(1, 1, -1, 1), padding=(r, 0))
     else:
         b = m[:, None]
-    return SilhouetteObservation(m.to(masks.device), b.to(masks.device), pix.to(masks.device),
-                                 pv.to(masks.device), valid.to(masks.device))
+    dev = masks.device
+    return SilhouetteObservation(m.to(dev), F.pad(m, (1, 1, 1, 1)).to(dev), b.to(dev),
+                                 pix.to(dev), pv.to(dev), valid.to(dev))
 
 
 def project_capsules(endpoints: torch.Tensor, radii: torch.Tensor, rig) -> tuple[torch.Tensor, ...]:
@@ -113,75 +117,134 @@ def project_capsules(endpoints: torch.Tensor, radii: torch.Tensor, rig) -> tuple
     return ends, rpx, front
 
 
-def _stadium_points(ends, rpx, m: int, n: int):
-    """Grid of ``m x n`` points inside each projected capsule: ``(P, C, B, m*n, 2)``, and the
-    stadium areas ``(P, C, B)``. Computed on x and y planes (one pass per term)."""
-    dt = ends.dtype
-    t = torch.linspace(0, 1, m, dtype=dt, device=ends.device)
-    s = torch.linspace(-0.75, 0.75, n, dtype=dt, device=ends.device)
-    T = t.repeat_interleave(n)  # (m*n,)
-    S = s.repeat(m)
-    ax, ay = ends[..., 0, 0, None], ends[..., 0, 1, None]
-    dx = ends[..., 1, 0, None] - ax
-    dy = ends[..., 1, 1, None] - ay
+class _Stadiums(NamedTuple):
+    """Projected capsules as ``(C, B, P)`` planes (particles innermost): first end ``(ax, ay)``,
+    axis ``(dx, dy)``, its length ``L``, unit direction ``(ex, ey)``, ``inv = 1/L`` (0 for
+    point-like stadiums), end radii ``r0, r1`` in pixels. Capsules with an end behind the
+    camera sit far outside every image with zero radius, so they cover no pixel."""
+
+    ax: torch.Tensor
+    ay: torch.Tensor
+    dx: torch.Tensor
+    dy: torch.Tensor
+    L: torch.Tensor
+    ex: torch.Tensor
+    ey: torch.Tensor
+    inv: torch.Tensor
+    r0: torch.Tensor
+    r1: torch.Tensor
+
+
+def _stadiums(endpoints: torch.Tensor, radii: torch.Tensor, rig) -> _Stadiums:
+    """:class:`_Stadiums` of capsule axes ``endpoints (P, B, 2, 3)`` with radii ``(B,)``."""
+    P, B = endpoints.shape[:2]
+    dt = endpoints.dtype
+    pts = endpoints.permute(2, 1, 0, 3).reshape(2 * B * P, 3)  # (end, B, P) order
+    u, v, depth, _ = rig.project_planar(pts)  # (C, 2 B P)
+    C = u.shape[0]
+    pix = torch.stack([u, v], 1).view(C, 2, 2, B, P).transpose(1, 2)  # (C, end, xy, B, P)
+    z = depth.view(C, 2, B, P)
+    K = rig.K.to(dt)
+    f = 0.5 * (K[:, 0, 0] + K[:, 1, 1])  # (C,)
+    front = (z > 1e-3).all(1)  # (C, B, P)
+    rpx = (f[:, None, None, None] * radii.to(dt)[None, None, :, None]) / z.clamp_min(1e-3)
+    far = torch.full((), -1e7, dtype=dt, device=pix.device)
+    zero = torch.zeros((), dtype=dt, device=pix.device)
+    ax = torch.where(front, pix[:, 0, 0], far)
+    ay = torch.where(front, pix[:, 0, 1], far)
+    dx = torch.where(front, pix[:, 1, 0], far) - ax
+    dy = torch.where(front, pix[:, 1, 1], far) - ay
+    r0 = torch.where(front, rpx[:, 0], zero)
+    r1 = torch.where(front, rpx[:, 1], zero)
     L = torch.sqrt((dx * dx + dy * dy).clamp_min(1e-12))  # finite gradient for point-like
-    inv = 1.0 / L.clamp_min(1e-6)
-    ux = torch.where(L > 1e-6, dx * inv, torch.ones_like(dx))
-    uy = dy * inv
-    r0, r1 = rpx[..., 0, None], rpx[..., 1, None]
-    off = (r0 + (r1 - r0) * T) * S  # (P, C, B, m*n) signed offset along the normal
-    px = ax + dx * T - uy * off
-    py = ay + dy * T + ux * off
-    area = L[..., 0] * (rpx[..., 0] + rpx[..., 1]) + torch.pi * rpx.pow(2).mean(-1)
-    return torch.stack([px, py], -1), area
+    long = L > 1e-6
+    inv = torch.where(long, 1.0 / L.clamp_min(1e-6), zero)
+    ex = torch.where(long, dx * inv, torch.ones((), dtype=dt, device=pix.device))
+    ey = dy * inv
+    return _Stadiums(ax, ay, dx, dy, torch.where(long, L, zero), ex, ey, inv, r0, r1)
 
 
-def _lookup_nearest(masks, pts):
-    """Mask values at ``pts (P, C, N, 2)`` (0 outside the image): ``(P, C, N)``."""
-    C, H, W = masks.shape
-    x = pts[..., 0].floor().long()
-    y = pts[..., 1].floor().long()
-    inside = (x >= 0) & (x < W) & (y >= 0) & (y < H)
-    cam = (torch.arange(C, device=pts.device) * (H * W))[None, :, None]
-    idx = cam + y.clamp(0, H - 1) * W + x.clamp(0, W - 1)  # (P, C, N)
-    vals = masks.reshape(-1)[idx.reshape(-1)].reshape(idx.shape)
-    return vals * inside.to(vals.dtype)
+def _stadium_points(st: _Stadiums, m: int, n: int) -> tuple[torch.Tensor, ...]:
+    """Grid of ``m x n`` points inside each stadium, ``px, py (C, m*n, B, P)``, and the stadium
+    areas ``(C, B, P)``."""
+    dt = st.ax.dtype
+    t = torch.linspace(0, 1, m, dtype=dt, device=st.ax.device)
+    s = torch.linspace(-0.75, 0.75, n, dtype=dt, device=st.ax.device)
+    T = t.repeat_interleave(n)[None, :, None, None]  # (1, m*n, 1, 1)
+    S = s.repeat(m)[None, :, None, None]
+    ax, ay, dx, dy, r0 = (x[:, None] for x in (st.ax, st.ay, st.dx, st.dy, st.r0))
+    # signed offset along the normal (-ey, ex): (r0 + (r1 - r0) t) s
+    off = torch.addcmul(r0 * S, (st.r1 - st.r0)[:, None], T * S)
+    px = torch.addcmul(ax, dx, T).addcmul_(st.ey[:, None], off, value=-1)
+    py = torch.addcmul(ay, dy, T).addcmul_(st.ex[:, None], off)
+    area = st.L * (st.r0 + st.r1) + (torch.pi / 2) * (st.r0 * st.r0 + st.r1 * st.r1)
+    return px, py, area
 
 
-def _lookup_bilinear(blurred, pts):
+def _lookup_nearest(padded: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
+    """Mask values at pixels ``px, py (C, ...)`` from ``padded (C, H+2, W+2)`` (the mask with a
+    one-pixel zero border: points outside the image read 0)."""
+    C, H2, W2 = padded.shape
+    if padded.numel() >= 2**24 and px.dtype != torch.float64:  # float32 indices stay exact
+        px, py = px.double(), py.double()
+    lead = (C,) + (1,) * (px.dim() - 1)
+    base = (torch.arange(C, device=px.device, dtype=px.dtype) * (H2 * W2) + W2 + 1).view(lead)
+    x = px.clamp(-1, W2 - 2).floor_()
+    y = py.clamp(-1, H2 - 2).floor_()
+    idx = torch.addcmul(x.add_(base), y, torch.full((), W2, dtype=px.dtype, device=px.device))
+    return padded.reshape(-1)[idx.long().reshape(-1)].view(px.shape)
+
+
+def _lookup_bilinear(blurred: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
+    """Bilinear values of ``blurred (C, 1, H, W)`` at pixels ``px, py (C, ...)`` (0 outside)."""
     C, _, H, W = blurred.shape
-    P, _, N, _ = pts.shape
-    g = torch.stack([pts[..., 0] / W * 2 - 1, pts[..., 1] / H * 2 - 1], -1)  # (P, C, N, 2)
-    g = g.permute(1, 0, 2, 3)  # (C, P, N, 2)
+    g = torch.stack([px / W * 2 - 1, py / H * 2 - 1], -1).reshape(C, -1, 1, 2)
     v = F.grid_sample(blurred, g, mode="bilinear", padding_mode="zeros", align_corners=False)
-    return v[:, 0].permute(1, 0, 2)  # (P, C, N)
+    return v.view(px.shape)
 
 
-def _coverage_margin(q, ends, rpx, smooth: bool):
-    """Largest coverage margin of pixels ``q (C, G, 2)`` over the stadiums ``ends (P, C, B, 2, 2)``
-    with end radii ``rpx (P, C, B, 2)``: ``(P, C, G)``, positive inside the model silhouette.
+def _coverage_margin(q: torch.Tensor, st: _Stadiums, smooth: bool) -> torch.Tensor:
+    """Largest coverage margin of pixels ``q (C, G, 2)`` over the stadiums ``st``: ``(C, G, P)``,
+    positive inside the model silhouette (``r(t)^2 - d^2`` for the hard test, ``r(t) - d`` in
+    pixels when ``smooth``).
 
-    Written on scalar planes (x and y separately, squared distances) so every step is one
-    elementwise pass over ``P*C*G*B`` values: this is the hot loop of the likelihood.
+    A stadium is the set of pixels within ``r(t) = r0 + t (r1 - r0)`` of its axis segment, ``t``
+    the clamped position of the closest axis point. Both coordinates of every pixel in every
+    stadium's frame (along the unit axis, and across it) come out of one matrix product of
+    homogeneous pixels with per-stadium coefficients; the rest is six elementwise passes over
+    ``G B P`` values per view, particles innermost (the reduction over ``B`` then runs over an
+    outer dimension, which vectorises). This is the hot loop of the likelihood.
     """
-    ax = ends[..., 0, 0][:, :, None]  # (P, C, 1, B)
-    ay = ends[..., 0, 1][:, :, None]
-    dx = (ends[..., 1, 0] - ends[..., 0, 0])[:, :, None]
-    dy = (ends[..., 1, 1] - ends[..., 0, 1])[:, :, None]
-    dd = (dx * dx + dy * dy).clamp_min(1e-9)
-    wx = q[None, :, :, None, 0] - ax  # (P, C, G, B)
-    wy = q[None, :, :, None, 1] - ay
-    wd = wx * dx + wy * dy
-    t = (wd / dd).clamp(0, 1)
-    r0 = rpx[..., 0][:, :, None]
-    r1 = rpx[..., 1][:, :, None]
-    if smooth:  # out-of-place: autograd needs the intermediates
-        dist2 = wx * wx + wy * wy - t * (2 * wd - t * dd)
-        r = r0 + t * (r1 - r0)
-        return (r - dist2.clamp_min(1e-12).sqrt()).max(-1).values
-    dist2 = wx.mul_(wx).add_(wy.mul_(wy)).sub_(t * (2 * wd - t * dd))
-    r = t.mul_(r1 - r0).add_(r0)
-    return r.mul_(r).sub_(dist2).max(-1).values
+    C, G = q.shape[:2]
+    dt = st.ax.dtype
+    B, P = st.ax.shape[1:]
+    # coefficients of (qx, qy, 1) for the along / across coordinates: (C, 3, 2 B P)
+    coef = torch.stack([torch.stack([st.ex, st.ey, -(st.ax * st.ex + st.ay * st.ey)], 1),
+                        torch.stack([-st.ey, st.ex, st.ax * st.ey - st.ay * st.ex], 1)],
+                       2).reshape(C, 3, -1)
+    qh = torch.cat([q.to(dt), torch.ones(C, G, 1, dtype=dt, device=q.device)], -1)
+    r0 = st.r0[:, None]  # (C, 1, B, P)
+    slope = ((st.r1 - st.r0) * st.inv)[:, None]
+    Lb = st.L[:, None]
+    if smooth:  # out-of-place, all views at once: autograd needs the intermediates
+        sp = torch.bmm(qh, coef).view(C, G, 2, B, P)
+        s, perp = sp[:, :, 0], sp[:, :, 1]  # (C, G, B, P)
+        sc = torch.clamp(s, min=torch.zeros_like(Lb), max=Lb)
+        r = torch.addcmul(r0, sc, slope)
+        along = s - sc
+        d2 = along * along + perp * perp
+        return (r - d2.clamp_min(1e-12).sqrt()).amax(2)
+    # one view at a time: blocks of G B P values stay cache-sized (and out of the allocator's
+    # slow path for multi-megabyte temporaries)
+    m = torch.empty(C, G, P, dtype=dt, device=q.device)
+    for c in range(C):
+        sp = torch.mm(qh[c], coef[c]).view(G, 2, B, P)
+        s, perp = sp[:, 0], sp[:, 1]  # (G, B, P)
+        sc = torch.clamp(s, min=torch.zeros_like(Lb[c]), max=Lb[c])
+        r = torch.addcmul(r0[c], sc, slope[c])
+        d2 = (s - sc).square_().addcmul_(perp, perp)
+        torch.amin(d2.addcmul_(r, r, value=-1), 1, out=m[c])
+    return m.neg_()
 
 
 def silhouette_energy(endpoints: torch.Tensor, radii: torch.Tensor, rig,
@@ -192,31 +255,26 @@ def silhouette_energy(endpoints: torch.Tensor, radii: torch.Tensor, rig,
     0 means the projected capsules and the foreground agree exactly at the sampled points; see
     the module docstring for the two terms.
     """
-    ends, rpx, front = project_capsules(endpoints, radii, rig)
-    pts, area = _stadium_points(ends, rpx, axis_samples, across_samples)
-    P, C, B = area.shape
-    pts = pts.reshape(P, C, -1, 2)
+    st = _stadiums(endpoints, radii, rig)
+    dt = st.ax.dtype
+    px, py, area = _stadium_points(st, axis_samples, across_samples)
     if smooth:
-        inside = _lookup_bilinear(obs.blurred.to(pts.dtype), pts)
+        inside = _lookup_bilinear(obs.blurred.to(dt), px, py)
     else:
-        inside = _lookup_nearest(obs.masks.to(pts.dtype), pts)
-    inside = inside.reshape(P, C, B, -1).mean(-1)  # fraction of each stadium on foreground
-    w = area * front.to(area.dtype)
-    m2i = 1 - (inside * w).sum(-1) / w.sum(-1).clamp_min(1e-9)  # (P, C)
+        inside = _lookup_nearest(obs.padded.to(dt), px, py)
+    inside = inside.mean(1)  # (C, B, P) fraction of each stadium on foreground
+    m2i = 1 - (inside * area).sum(1) / area.sum(1).clamp_min(1e-9)  # (C, P)
 
-    # capsules behind a camera get a negative radius: they cover nothing
-    rpx = torch.where(front[..., None], rpx, torch.full_like(rpx, -1e3))
-    margin = _coverage_margin(obs.fg_pixels.to(pts.dtype), ends, rpx, smooth)  # (P, C, G)
+    margin = _coverage_margin(obs.fg_pixels, st, smooth)  # (C, G, P)
     if smooth:
         covered = torch.sigmoid(margin / tau)
     else:
-        covered = (margin > 0).to(margin.dtype)
-    fv = obs.fg_valid.to(margin.dtype)
-    i2m = 1 - (covered * fv).sum(-1) / fv.sum(-1).clamp_min(1)  # (P, C)
+        covered = (margin > 0).to(dt)
+    fv = obs.fg_valid.to(dt)[..., None]  # (C, G, 1)
+    i2m = 1 - (covered * fv).sum(1) / fv.sum(1).clamp_min(1)  # (C, P)
 
-    vv = obs.view_valid.to(margin.dtype)
-    per_view = 0.5 * (m2i + i2m)
-    return (per_view * vv).sum(-1) / vv.sum().clamp_min(1)
+    vv = obs.view_valid.to(dt)[:, None]
+    return (0.5 * (m2i + i2m) * vv).sum(0) / vv.sum().clamp_min(1)
 
 
 class SilhouetteLikelihood(nn.Module):
@@ -259,20 +317,18 @@ def render_capsule_silhouettes(body, rig, theta: torch.Tensor, chunk: int = 2000
     Every pixel centre is tested against every projected capsule (the same stadium model the
     likelihood uses), in chunks of pixels. Used for overlays, IoU reports and test oracles.
     """
-    ep = body.endpoints(body.skeleton(theta[None]))
-    ends, rpx, front = project_capsules(ep, body.radii, rig)
-    rpx = torch.where(front[..., None], rpx, torch.full_like(rpx, -1e3))
+    st = _stadiums(body.endpoints(body.skeleton(theta[None])), body.radii, rig)
     sizes = {tuple(int(v) for v in s) for s in rig.image_size.tolist()}
     if len(sizes) != 1:
         raise ValueError(f"rig: all cameras need one image size, got {sorted(sizes)}")
     W, H = sizes.pop()
     ys, xs = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
-    q = torch.stack([xs + 0.5, ys + 0.5], -1).reshape(-1, 2).to(ep.dtype)
-    C = ends.shape[1]
+    q = torch.stack([xs + 0.5, ys + 0.5], -1).reshape(-1, 2).to(st.ax.dtype)
+    C = st.ax.shape[0]
     out = torch.empty(C, H * W, dtype=torch.bool)
     for a in range(0, H * W, chunk):
         qq = q[a:a + chunk][None].expand(C, -1, -1)
-        out[:, a:a + chunk] = _coverage_margin(qq, ends, rpx, smooth=False)[0] > 0
+        out[:, a:a + chunk] = _coverage_margin(qq, st, smooth=False)[..., 0] > 0
     return out.reshape(C, H, W)
 
 
