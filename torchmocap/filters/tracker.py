@@ -207,6 +207,7 @@ class Tracker:
         sig = torch.full((sk.num_dofs,), math.radians(self.cfg.sigma_rot_deg), dtype=self.dtype)
         sig[sk.translation_dofs] = self.cfg.sigma_trans
         self.sigma_full = sig
+        self._vmf = None  # the sensor-noise distribution, built on first use
 
     # ------------------------------------------------------------------ observations
     def _check_frame(self, obs: dict) -> None:
@@ -233,7 +234,7 @@ class Tracker:
             v = cfg.w_silh * silhouette_energy(ep, self.body.radii, rig, prepared, smooth=smooth)
             if cfg.w_app > 0:
                 v = v + cfg.w_app * appearance_energy(
-                    kin, self.body, self.pattern, rig, colours, prepared.view_valid
+                    kin, self.body, self.pattern, rig, colours, prepared.view_valid, endpoints=ep
                 )
             return v
 
@@ -295,10 +296,12 @@ class Tracker:
         g.set_state(state.generator_state)
         t0 = time.perf_counter()
         pred = self._predict(state.history)
+        smooth = cfg.method in ("l", "ls")  # the blurred masks serve only the smooth cost
         prepared = prepare_silhouettes(
-            obs["silhouettes"], cfg.fg_samples, view_valid=obs.get("view_valid"), dtype=self.dtype
+            obs["silhouettes"], cfg.fg_samples, blur=1.5 if smooth else 0.0,
+            view_valid=obs.get("view_valid"), dtype=self.dtype
         )
-        image_energy = self._image_energy(obs, prepared, smooth=cfg.method in ("l", "ls"))
+        image_energy = self._image_energy(obs, prepared, smooth=smooth)
         info: dict = {"frame": state.frame + 1}
         P = cfg.num_particles
         if cfg.method == "p":
@@ -359,8 +362,10 @@ class Tracker:
         """Per-particle sensor noise rotations ``R_w`` as quaternions ``(P, S, 4)`` (or None)."""
         cfg = self.cfg
         if cfg.noise == "vmf":
-            mu = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=self.dtype)
-            return VonMisesFisher(mu, cfg.kappa).sample((P, S), generator=g)
+            if self._vmf is None:
+                mu = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=self.dtype)
+                self._vmf = VonMisesFisher(mu, cfg.kappa)
+            return self._vmf.sample((P, S), generator=g)
         if cfg.noise == "tangent":
             w = torch.randn(P, S, 3, generator=g, dtype=self.dtype) * (2.0 / math.sqrt(cfg.kappa))
             return axis_angle_to_quaternion(w)

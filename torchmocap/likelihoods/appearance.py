@@ -102,12 +102,14 @@ def prepare_images(images, dtype: torch.dtype = torch.float32) -> ColourObservat
 
 
 def appearance_energy(kin, body, pattern: dict, rig, images,
-                      view_valid: torch.Tensor | None = None) -> torch.Tensor:
+                      view_valid: torch.Tensor | None = None,
+                      endpoints: torch.Tensor | None = None) -> torch.Tensor:
     """``V_app (P,)`` of poses ``kin`` against colour ``images (C, H, W, 3)`` (uint8 or [0, 1]),
-    or their :func:`prepare_images` form (no per-call conversion)."""
+    or their :func:`prepare_images` form (no per-call conversion). ``endpoints`` may pass
+    ``body.endpoints(kin)`` when the caller already has them."""
     dtype = kin.positions.dtype
     obs = prepare_images(images, dtype)
-    ep = body.endpoints(kin)  # (P, B, 2, 3)
+    ep = body.endpoints(kin) if endpoints is None else endpoints  # (P, B, 2, 3)
     P, B = ep.shape[:2]
     t, radial = _per_bone(pattern, B)
     t, radial = t.to(dtype), radial.to(dtype)
