@@ -165,7 +165,7 @@ def _stadium_oracle(rig, endpoints, radii, W, H):
     f = 0.5 * (rig.K[0, 0, 0] + rig.K[0, 1, 1]).item()
     out = np.zeros((H, W), dtype=bool)
     ys, xs = np.mgrid[0:H, 0:W]
-    q = np.stack([xs + 0.5, ys + 0.5], -1).astype(np.float64)
+    q = np.stack([xs, ys], -1).astype(np.float64)  # pixel centres at integer coordinates
     for b in range(endpoints.shape[0]):
         z = depth[0, 2 * b:2 * b + 2].numpy()
         if (z <= 1e-3).any():
@@ -195,7 +195,7 @@ def test_stadium_coverage_matches_a_per_pixel_oracle():
                       dtype=torch.float64)
     radii = torch.tensor([0.08, 0.1, 0.5, 0.05], dtype=torch.float64)
     ys, xs = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
-    q = torch.stack([xs + 0.5, ys + 0.5], -1).reshape(1, -1, 2).double()
+    q = torch.stack([xs, ys], -1).reshape(1, -1, 2).double()
     for dt in (torch.float64, torch.float32):
         st = _stadiums(ep[None].to(dt), radii.to(dt), rig.to(dt))
         hard = (_coverage_margin(q.to(dt), st, smooth=False)[0, :, 0] > 0).reshape(H, W)
@@ -217,7 +217,7 @@ def test_silhouette_energy_terms_closed_form():
     ep = torch.tensor([[[[-0.4, 0.0, 2.0], [0.4, 0.0, 2.0]]]])
     radii = torch.tensor([0.2])
     model = torch.zeros(1, H, W, dtype=torch.bool)
-    ys, xs = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    ys, xs = torch.meshgrid(torch.arange(H) * 1.0, torch.arange(W) * 1.0, indexing="ij")
     d = torch.where(xs < 30, torch.hypot(xs - 30, ys - 30),
                     torch.where(xs > 70, torch.hypot(xs - 70, ys - 30), (ys - 30).abs()))
     model[0] = d < 10
@@ -277,7 +277,7 @@ def test_appearance_energy_matches_a_loop_oracle(scene):
                     if vv is not None and not vv[c]:
                         continue
                     if vis[c, 0] and float((centres[c] - x) @ n) > 0:
-                        u, v = pix[c, 0].floor().long().tolist()
+                        u, v = (pix[c, 0] + 0.5).floor().long().tolist()  # nearest pixel
                         cols.append(imgs[c, v, u].double() / 255)
                 if len(cols) >= 2:
                     variances.append(torch.stack(cols).var(0, unbiased=False).mean())
@@ -296,3 +296,34 @@ def test_appearance_pattern_layout_checked(scene):
         appearance_energy(sk(th[None]), body, shuffled, rig, imgs)
     with pytest.raises(ValueError, match="axial"):
         body_surface_pattern(body, 0, 2)
+
+
+def test_capsule_model_matches_the_rasterised_capsule_body():
+    """The likelihood's stadium model and the synthesis rasteriser share the pixel convention
+    (pixel x covers [x - 0.5, x + 0.5)): observations rendered from the tracker's own capsule
+    body agree with its stadium silhouettes (a half-pixel shift drops the IoU to ~0.89)."""
+    from torchmocap.data import load_scenario, synthesize
+    from torchmocap.data.subject import fit_subject
+    from torchmocap.io import bundled_clip_path, load_motion
+    from torchmocap.likelihoods.silhouette import render_capsule_silhouettes, silhouette_iou
+
+    clip = load_motion(bundled_clip_path()).resample(25).slice(0, 1)
+    sc = load_scenario("clean", body="capsules", **{"images.enabled": False,
+                                                     "depth.enabled": False,
+                                                     "joints2d.enabled": False})
+    seq = synthesize(fit_subject(clip), sc, seed=0)
+    gt = seq.ground_truth
+    sk = gt.build_skeleton().double()
+    body = CapsuleBody(sk).double()
+    rig = seq.rig.double()
+    masks = seq.frame(0).silhouettes
+    model = render_capsule_silhouettes(body, rig, gt.theta[0].double())
+    assert float(silhouette_iou(model, masks).min()) > 0.97
+    obs = prepare_silhouettes(masks, 400, dtype=torch.float64)
+    v = silhouette_energy(body.endpoints(sk(gt.theta[:1].double())), body.radii, rig, obs)
+    assert v.item() < 0.005
+    # the same pose shifted by one pixel's worth (~1 cm) sideways is clearly worse
+    shifted = gt.theta[:1].double().clone()
+    shifted[0, 0] += 0.01
+    v1 = silhouette_energy(body.endpoints(sk(shifted)), body.radii, rig, obs)
+    assert v1.item() > v.item() + 0.005

@@ -131,8 +131,9 @@ def appearance_energy(kin, body, pattern: dict, rig, images,
     it = dtype if C * H * W < 2**24 or dtype == torch.float64 else torch.float64
     u, v = u.to(it), v.to(it)
     base = (torch.arange(C, device=u.device, dtype=it) * (H * W))[:, None]
-    x = u.clamp(0, W - 1).floor_().add_(base)
-    idx = torch.addcmul(x, v.clamp(0, H - 1).floor_(), torch.full((), W, dtype=it))
+    # pixel x covers [x - 0.5, x + 0.5): the index is floor(u + 0.5)
+    x = (u + 0.5).clamp_(0, W - 1).floor_().add_(base)
+    idx = torch.addcmul(x, (v + 0.5).clamp_(0, H - 1).floor_(), torch.full((), W, dtype=it))
     idx = torch.where(ok, idx.long(), C * H * W)  # unseen -> the 0 pixel
     cols = obs.planes.index_select(1, idx.reshape(-1)).reshape(3, C, -1)  # (3, C, M)
     cnt = ok.sum(0).to(dtype)  # (M,)

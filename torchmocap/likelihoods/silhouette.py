@@ -81,8 +81,8 @@ def prepare_silhouettes(masks: torch.Tensor, num_samples: int = 150, blur: float
             continue
         k = min(n, num_samples)
         idx = torch.linspace(0, n - 1, k).round().long()
-        pix[c, :k, 0] = xs[idx].to(dtype) + 0.5
-        pix[c, :k, 1] = ys[idx].to(dtype) + 0.5
+        pix[c, :k, 0] = xs[idx].to(dtype)  # pixel centres sit at integer coordinates
+        pix[c, :k, 1] = ys[idx].to(dtype)
         pv[c, :k] = True
     if blur > 0:
         r = max(1, int(round(3 * blur)))
@@ -189,8 +189,9 @@ def _lookup_nearest(padded: torch.Tensor, px: torch.Tensor, py: torch.Tensor) ->
         px, py = px.double(), py.double()
     lead = (C,) + (1,) * (px.dim() - 1)
     base = (torch.arange(C, device=px.device, dtype=px.dtype) * (H2 * W2) + W2 + 1).view(lead)
-    x = px.clamp(-1, W2 - 2).floor_()
-    y = py.clamp(-1, H2 - 2).floor_()
+    # pixel x covers [x - 0.5, x + 0.5) (the cameras' and the rasteriser's convention)
+    x = (px + 0.5).clamp_(-1, W2 - 2).floor_()
+    y = (py + 0.5).clamp_(-1, H2 - 2).floor_()
     idx = torch.addcmul(x.add_(base), y, torch.full((), W2, dtype=px.dtype, device=px.device))
     return padded.reshape(-1)[idx.long().reshape(-1)].view(px.shape)
 
@@ -198,7 +199,8 @@ def _lookup_nearest(padded: torch.Tensor, px: torch.Tensor, py: torch.Tensor) ->
 def _lookup_bilinear(blurred: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
     """Bilinear values of ``blurred (C, 1, H, W)`` at pixels ``px, py (C, ...)`` (0 outside)."""
     C, _, H, W = blurred.shape
-    g = torch.stack([px / W * 2 - 1, py / H * 2 - 1], -1).reshape(C, -1, 1, 2)
+    # align_corners=False puts pixel i's centre at (i + 0.5) / W * 2 - 1
+    g = torch.stack([(px + 0.5) / W * 2 - 1, (py + 0.5) / H * 2 - 1], -1).reshape(C, -1, 1, 2)
     v = F.grid_sample(blurred, g, mode="bilinear", padding_mode="zeros", align_corners=False)
     return v.view(px.shape)
 
@@ -323,7 +325,7 @@ def render_capsule_silhouettes(body, rig, theta: torch.Tensor, chunk: int = 2000
         raise ValueError(f"rig: all cameras need one image size, got {sorted(sizes)}")
     W, H = sizes.pop()
     ys, xs = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
-    q = torch.stack([xs + 0.5, ys + 0.5], -1).reshape(-1, 2).to(st.ax.dtype)
+    q = torch.stack([xs, ys], -1).reshape(-1, 2).to(st.ax.dtype)  # integer pixel centres
     C = st.ax.shape[0]
     out = torch.empty(C, H * W, dtype=torch.bool)
     for a in range(0, H * W, chunk):
