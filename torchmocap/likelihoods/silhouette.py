@@ -14,7 +14,10 @@ Both terms are batched over particles x views x capsules; no image is rendered, 
 ``O(P C B (m n + G))`` instead of ``O(P C H W)``. The *hard* version uses nearest-pixel lookups
 and a 0/1 coverage test (fast, for sampling); the *smooth* version uses bilinear lookups of a
 blurred mask and a sigmoid coverage of width ``tau`` pixels (differentiable, for gradient-based
-optimisation). Shapes: ``P`` particles, ``C`` views, ``B`` capsules, ``G`` foreground samples.
+optimisation). Pixel ``(x, y)`` covers ``[x - 0.5, x + 0.5) x [y - 0.5, y + 0.5)``, as in
+:mod:`torchmocap.cameras` and the synthesis rasteriser. Internally the projected capsules are
+``(C, B, P)`` planes, particles innermost. Shapes: ``P`` particles, ``C`` views, ``B`` capsules,
+``G`` foreground samples.
 """
 
 from __future__ import annotations
@@ -45,7 +48,8 @@ class SilhouetteObservation:
         masks: ``(C, H, W)`` float foreground in {0, 1}.
         padded: ``(C, H+2, W+2)`` the masks with a one-pixel zero border (hard lookups).
         blurred: ``(C, 1, H, W)`` blurred masks for the smooth version.
-        fg_pixels: ``(C, G, 2)`` sampled foreground pixel centres (x, y).
+        fg_pixels: ``(C, G, 2)`` sampled foreground pixel centres (x, y); pixel ``x`` covers
+            ``[x - 0.5, x + 0.5)`` (the convention of the cameras and the rasteriser).
         fg_valid: ``(C, G)`` which samples exist (views with fewer foreground pixels pad).
         view_valid: ``(C,)`` views to use (a dropped view or an empty mask is excluded).
     """
