@@ -5,9 +5,12 @@ Every run: a real motion clip -> subject fit -> observations synthesised from th
 (not the tracker's capsules) under a scenario -> tracker -> validation error (eq. 19, atan2 form)
 of the 5 validation sensors' bones (chest, upper arms, thighs) against ground truth.
 
-    python experiments/ponsmoll2010/tracking.py fig8  [--frames 40] [--particles 100 --layers 10]
-    python experiments/ponsmoll2010/tracking.py fig9a [--frames 40]
-    python experiments/ponsmoll2010/tracking.py fig10 [--frames 60]
+    python experiments/ponsmoll2010/tracking.py fig8  [--frames 75] [--particles 200 --layers 15]
+    python experiments/ponsmoll2010/tracking.py fig9a [--frames 75]
+    python experiments/ponsmoll2010/tracking.py fig10 [--frames 75]
+    python experiments/ponsmoll2010/tracking.py control [--frames 75]
+
+Particle methods run with tracker seeds 0, 1, 2 (``--seeds``) on the same observations.
 
 Results (one JSON per run, cached: an interrupted sweep resumes) go to ``results/runs/``; the
 tables and plots to ``results/fig8.md|png``, ``fig9a.md|png``, ``fig10.md|png``.
@@ -33,11 +36,11 @@ SHARED = HERE.parents[2] / "shared" / "data" / "mocap"
 CLIPS = {
     "walking": ("cmu/131_02.bvh", None, 0, 1.0),
     "jumping": ("cmu/01_01.amc", "cmu/01.asf", 0, 2.0),
-    "kicking": ("hdm05/HDM_bd_kickLFront1Reps_001_120.amc", "hdm05/HDM_bd.asf", 0, 0.5),
-    "basketball": ("hdm05/HDM_bd_throwBasketball_001_120.amc", "hdm05/HDM_bd.asf", 0, 0.5),
+    "kicking": ("hdm05/HDM_bd_kickLFront1Reps_001_120.amc", "hdm05/HDM_bd.asf", 0, 0.0),
+    "basketball": ("hdm05/HDM_bd_throwBasketball_001_120.amc", "hdm05/HDM_bd.asf", 0, 0.0),
     "dancing": ("cmu/60_12_scaled.bvh", None, 0, 2.0),
     "arm rotation": ("hdm05/HDM_bd_rotateArmsBothBackward1Reps_001_120.amc",
-                     "hdm05/HDM_bd.asf", 0, 0.5),
+                     "hdm05/HDM_bd.asf", 0, 0.0),
 }
 METHODS = ["l", "ls", "g", "gs", "rs", "p"]
 PAPER_FIG8 = {"p": "10.78 ± 8.5", "gs": "not in Fig. 8", "g": "above P (bar)",
@@ -68,9 +71,26 @@ def run_one(seq, method: str, seed: int = 0, **overrides) -> dict:
     names, bones, track = seq.imu.names, seq.imu.bones, seq.imu.tracking.tolist()
     sensors = {n: b for n, b, t in zip(names, bones, track) if t}
     val = [b for b, t in zip(bones, track) if not t]
+    diagnose = overrides.pop("diagnose", False)
     cfg = TrackerConfig(method=method, **overrides)
     tr = Tracker(body, seq.rig.float(), cfg, sensors=sensors, seed=seed)
     out = tr.run(seq, theta0=gt.theta[0].float(), progress=False)
+    extra = {}
+    if diagnose:  # is the truth (the fitted pose) a better optimum than what the tracker found?
+        from torchmocap.filters.tracker import frame_observation
+        from torchmocap.likelihoods.silhouette import prepare_silhouettes
+
+        tk = seq.imu.tracking.nonzero()[:, 0]
+        below = []
+        for t in range(1, seq.num_frames):
+            obs = frame_observation(seq.frame(t), tk)
+            prep = prepare_silhouettes(obs["silhouettes"], cfg.fg_samples, blur=0.0,
+                                       view_valid=obs.get("view_valid"))
+            with torch.no_grad():
+                v = tr._image_energy(obs, prep)(torch.stack([gt.theta[t].float(),
+                                                             out.theta[t].float()]))
+            below.append(bool(v[1] < v[0]))
+        extra["estimate_energy_below_truth"] = sum(below) / len(below)
     kin = sk(out.theta)
     vb = [sk.joint_index(b) for b in val]
     ori = orientation_error_deg(kin.rotations[1:, vb], gt.rotations[1:, vb].float())
@@ -81,7 +101,7 @@ def run_one(seq, method: str, seed: int = 0, **overrides) -> dict:
             "ori_per_bone": {b: float(ori[:, k].mean()) for k, b in enumerate(val)},
             "ori_per_bone_frame": {b: ori[:, k].tolist() for k, b in enumerate(val)},
             "mpjpe_mean": float(mp.mean()), "seconds_per_frame": out.seconds_per_frame,
-            "frames": int(out.theta.shape[0])}
+            "frames": int(out.theta.shape[0]), **extra}
 
 
 def cached(key: str, fn):
@@ -94,6 +114,30 @@ def cached(key: str, fn):
     tmp.write_text(json.dumps(res))
     os.replace(tmp, path)
     return res
+
+
+def combine(runs: list[dict]) -> dict:
+    """Pool runs of several tracker seeds: mean error, std over frames x bones x seeds, the spread
+    (std) of the per-seed means, per-bone means and per-frame curves averaged over seeds."""
+    n = len(runs)
+    mean = sum(r["ori_mean"] for r in runs) / n
+    std = math.sqrt(sum(r["ori_std"] ** 2 + (r["ori_mean"] - mean) ** 2 for r in runs) / n)
+    spread = math.sqrt(sum((r["ori_mean"] - mean) ** 2 for r in runs) / max(n - 1, 1))
+    bones = list(runs[0]["ori_per_bone"])
+    per_bone = {b: sum(r["ori_per_bone"][b] for r in runs) / n for b in bones}
+    per_bone_frame = {b: [sum(v) / n for v in zip(*(r["ori_per_bone_frame"][b] for r in runs))]
+                      for b in bones}
+    return {"ori_mean": mean, "ori_std": std, "seed_spread": spread, "seeds": n,
+            "ori_per_bone": per_bone, "ori_per_bone_frame": per_bone_frame,
+            "seconds_per_frame": sum(r["seconds_per_frame"] for r in runs) / n,
+            "frames": runs[0]["frames"], "per_seed": [r["ori_mean"] for r in runs]}
+
+
+def cell(r: dict) -> str:
+    """``mean ± std`` of a combined cell (with the seed spread when there are several seeds)."""
+    if r.get("seeds", 1) > 1:
+        return f"{r['ori_mean']:.1f} ± {r['ori_std']:.1f} (±{r['seed_spread']:.1f})"
+    return f"{r['ori_mean']:.1f} ± {r['ori_std']:.1f}"
 
 
 def synth(activity, frames, scenario, seed=0, **scenario_overrides):
@@ -110,35 +154,45 @@ def fig8(args):
     import matplotlib.pyplot as plt
 
     rows = {}
-    for act in CLIPS:
+    clips = [a for a in CLIPS if not args.clips or a in args.clips]
+    for act in clips:
         seq = None
         for m in METHODS:
-            key = f"fig8_{act.replace(' ', '_')}_{m}_{args.particles}x{args.layers}_{args.frames}"
+            seeds = [0] if m in ("l", "ls") else args.seeds  # L/LS are deterministic
+            runs = []
+            for seed in seeds:
+                key = (f"fig8_{act.replace(' ', '_')}_{m}_{args.particles}x{args.layers}_"
+                       f"{args.frames}_s{seed}")
 
-            def go(m=m, act=act):
-                nonlocal seq
-                if seq is None:
-                    seq = synth(act, args.frames, "outdoor", seed=0)
-                kw = {} if m in ("l", "ls") else {"num_particles": args.particles,
-                                                  "layers": args.layers}
-                if m == "rs":
-                    kw["reject_tries"] = args.reject_tries
-                t0 = time.perf_counter()
-                r = run_one(seq, m, **kw)
-                print(f"fig8 {act:>12} {m:>3}: {r['ori_mean']:.2f} deg "
-                      f"({time.perf_counter() - t0:.0f} s)", flush=True)
-                return r
+                def go(m=m, act=act, seed=seed):
+                    nonlocal seq
+                    if seq is None:
+                        seq = synth(act, args.frames, "outdoor", seed=0)
+                    kw = {} if m in ("l", "ls") else {"num_particles": args.particles,
+                                                      "layers": args.layers}
+                    if m == "rs":
+                        kw["reject_tries"] = args.reject_tries
+                    t0 = time.perf_counter()
+                    r = run_one(seq, m, seed=seed, **kw)
+                    print(f"fig8 {act:>12} {m:>3} seed {seed}: {r['ori_mean']:.2f} deg "
+                          f"({time.perf_counter() - t0:.0f} s)", flush=True)
+                    return r
 
-            rows[(act, m)] = cached(key, go)
-    lines = [f"# Fig. 8: validation orientation error (deg, mean ± std over frames and the 5 "
-             f"validation sensors), outdoor scenario, {args.frames} frames at 25 fps, "
-             f"{args.particles} particles x {args.layers} layers (L/LS: local optimisation)",
+                runs.append(cached(key, go))
+            rows[(act, m)] = combine(runs)
+    if clips != list(CLIPS):
+        return  # a partial sweep only fills the cache
+    lines = [f"# Fig. 8: validation orientation error (deg): mean ± std over frames, the 5 "
+             f"validation sensors and tracker seeds {args.seeds} (± spread of the per-seed "
+             f"means); outdoor scenario, up to {args.frames} frames at 25 fps, "
+             f"{args.particles} particles x {args.layers} layers (L/LS: deterministic local "
+             f"optimisation, one run)",
              "", "| activity | " + " | ".join(m.upper() for m in METHODS) + " |",
              "|---|" + "---|" * len(METHODS)]
     for act in CLIPS:
-        cells = [f"{rows[(act, m)]['ori_mean']:.1f} ± {rows[(act, m)]['ori_std']:.1f}"
-                 for m in METHODS]
-        lines.append(f"| {act} | " + " | ".join(cells) + " |")
+        cells = [cell(rows[(act, m)]) for m in METHODS]
+        lines.append(f"| {act} ({rows[(act, 'p')]['frames'] - 1} frames) | "
+                     + " | ".join(cells) + " |")
     allm = {m: [rows[(a, m)] for a in CLIPS] for m in METHODS}
     mean = {m: sum(r["ori_mean"] for r in v) / len(v) for m, v in allm.items()}
     std = {m: math.sqrt(sum(r["ori_std"] ** 2 + (r["ori_mean"] - mean[m]) ** 2 for r in v)
@@ -177,29 +231,32 @@ def fig9a(args):
     seq = None
     for m in ("gs", "p"):
         for n in counts:
-            def go(m=m, n=n):
-                nonlocal seq
-                if seq is None:
-                    seq = synth("walking", args.frames, "outdoor", seed=0)
-                r = run_one(seq, m, num_particles=n, layers=args.layers)
-                print(f"fig9a {m} {n}: {r['ori_mean']:.2f}", flush=True)
-                return r
+            runs = []
+            for seed in args.seeds:
+                def go(m=m, n=n, seed=seed):
+                    nonlocal seq
+                    if seq is None:
+                        seq = synth("walking", args.frames, "outdoor", seed=0)
+                    r = run_one(seq, m, seed=seed, num_particles=n, layers=args.layers)
+                    print(f"fig9a {m} {n} seed {seed}: {r['ori_mean']:.2f}", flush=True)
+                    return r
 
-            res[(m, n)] = cached(f"fig9a_walking_{m}_{n}x{args.layers}_{args.frames}", go)
+                runs.append(cached(f"fig9a_walking_{m}_{n}x{args.layers}_{args.frames}_s{seed}",
+                                   go))
+            res[(m, n)] = combine(runs)
     lines = ["# Fig. 9a: validation error (deg) vs number of particles, walking clip, outdoor, "
-             f"{args.layers} layers, {args.frames} frames", "",
+             f"{args.layers} layers, {args.frames} frames, tracker seeds {args.seeds} "
+             "(mean ± std over frames, bones and seeds; ± spread of the per-seed means)", "",
              "| particles | " + " | ".join(str(n) for n in counts) + " |",
              "|---|" + "---|" * len(counts)]
     for m in ("gs", "p"):
-        lines.append(f"| {m.upper()} | " + " | ".join(
-            f"{res[(m, n)]['ori_mean']:.1f} ± {res[(m, n)]['ori_std']:.1f}" for n in counts)
-            + " |")
+        lines.append(f"| {m.upper()} | " + " | ".join(cell(res[(m, n)]) for n in counts) + " |")
     (RESULTS / "fig9a.md").write_text("\n".join(lines) + "\n")
     fig, ax = plt.subplots(figsize=(5, 3.5))
     for m in ("gs", "p"):
         ax.errorbar(counts, [res[(m, n)]["ori_mean"] for n in counts],
-                    [res[(m, n)]["ori_std"] for n in counts], marker="o", capsize=3,
-                    label=m.upper())
+                    [res[(m, n)]["seed_spread"] for n in counts], marker="o", capsize=3,
+                    label=f"{m.upper()} (bars: seed spread)")
     ax.set_xscale("log")
     ax.set_xticks(counts)
     ax.set_xticklabels([str(n) for n in counts])
@@ -221,28 +278,32 @@ def fig10(args):
     seq = None
     res = {}
     for label, noise in noises:
-        def go(noise=noise):
-            nonlocal seq
-            if seq is None:
-                seq = synth("walking", args.frames, "studio", seed=0,
-                            **{"imu.misalignment_deg": [5.0, 10.0]})
-            r = run_one(seq, "p", noise=noise, num_particles=args.particles, layers=args.layers)
-            print(f"fig10 {noise}: {r['ori_mean']:.2f} (left hip "
-                  f"{r['ori_per_bone'].get('l_hip', float('nan')):.2f})", flush=True)
-            return r
+        runs = []
+        for seed in args.seeds:
+            def go(noise=noise, seed=seed):
+                nonlocal seq
+                if seq is None:
+                    seq = synth("walking", args.frames, "studio", seed=0,
+                                **{"imu.misalignment_deg": [5.0, 10.0]})
+                r = run_one(seq, "p", seed=seed, noise=noise, num_particles=args.particles,
+                            layers=args.layers)
+                print(f"fig10 {noise} seed {seed}: {r['ori_mean']:.2f} (left hip "
+                      f"{r['ori_per_bone'].get('l_hip', float('nan')):.2f})", flush=True)
+                return r
 
-        res[label] = cached(f"fig10_walking_{noise}_{args.particles}x{args.layers}_"
-                            f"{args.frames}", go)
+            runs.append(cached(f"fig10_walking_{noise}_{args.particles}x{args.layers}_"
+                               f"{args.frames}_s{seed}", go))
+        res[label] = combine(runs)
     paper = {"none": 26.8, "gaussian": 13.0, "vmf": 7.3}
     lines = ["# Fig. 10: left-hip validation error (deg) of P with three sensor-noise models, "
              f"walking clip with 5-10 deg sensor misalignment, {args.particles} x {args.layers}, "
-             f"{args.frames} frames", "",
+             f"{args.frames} frames, tracker seeds {args.seeds}", "",
              "| noise model | left hip (ours) | all 5 sensors (ours) | left hip (paper) |",
              "|---|---|---|---|"]
     for label, _ in noises:
         r = res[label]
-        lines.append(f"| {label} | {r['ori_per_bone']['l_hip']:.1f} | {r['ori_mean']:.1f} ± "
-                     f"{r['ori_std']:.1f} | {paper[label]} |")
+        lines.append(f"| {label} | {r['ori_per_bone']['l_hip']:.1f} | {cell(r)} | "
+                     f"{paper[label]} |")
     (RESULTS / "fig10.md").write_text("\n".join(lines) + "\n")
     fig, ax = plt.subplots(figsize=(6, 3.5))
     for label, _ in noises:
@@ -256,17 +317,62 @@ def fig10(args):
     print("\n".join(lines))
 
 
+def control(args):
+    """P on the same clips when the observations come from the tracker's own capsule body
+    (clean), from the skinned mesh (clean), and from the skinned mesh outdoors: separates the
+    optimiser's share of the error from the body-model mismatch and the image corruption."""
+    conditions = [("capsules, clean", "clean", {"body": "capsules"}),
+                  ("skinned mesh, clean", "clean", {}),
+                  ("skinned mesh, outdoor", "outdoor", {})]
+    acts = ["walking", "jumping", "basketball"]
+    res = {}
+    for label, scen, ov in conditions:
+        for act in acts:
+            seq = None
+            runs = []
+            for seed in args.seeds:
+                def go(act=act, seed=seed, scen=scen, ov=ov, label=label):
+                    nonlocal seq
+                    if seq is None:
+                        seq = synth(act, args.frames, scen, seed=0, **ov)
+                    r = run_one(seq, "p", seed=seed, num_particles=args.particles,
+                                layers=args.layers, diagnose=True)
+                    print(f"control {label} {act} seed {seed}: {r['ori_mean']:.2f}", flush=True)
+                    return r
+
+                tag = label.replace(", ", "_").replace(" ", "-")
+                runs.append(cached(f"control_{tag}_{act}_{args.particles}x{args.layers}_"
+                                   f"{args.frames}_s{seed}", go))
+            c = combine(runs)
+            c["below"] = sum(r["estimate_energy_below_truth"] for r in runs) / len(runs)
+            res[(label, act)] = c
+    lines = ["# Control: P (200 x 15 unless stated) with observations from the tracker's own "
+             f"capsules vs the skinned mesh; {args.frames} frames, seeds {args.seeds}. Cells: "
+             "validation error (deg) mean ± std (± seed spread); in brackets the fraction of "
+             "frames whose estimate has a lower image energy than the true pose.", "",
+             "| observations | " + " | ".join(acts) + " |", "|---|" + "---|" * len(acts)]
+    for label, _, _ in conditions:
+        lines.append(f"| {label} | " + " | ".join(
+            f"{cell(res[(label, a)])} [{res[(label, a)]['below']:.2f}]" for a in acts) + " |")
+    (RESULTS / "control.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("figure", choices=["fig8", "fig9a", "fig10"])
-    ap.add_argument("--frames", type=int, default=40)
-    ap.add_argument("--particles", type=int, default=100)
-    ap.add_argument("--layers", type=int, default=10)
+    ap.add_argument("figure", choices=["fig8", "fig9a", "fig10", "control"])
+    ap.add_argument("--frames", type=int, default=75)
+    ap.add_argument("--particles", type=int, default=200)
+    ap.add_argument("--layers", type=int, default=15)
     ap.add_argument("--reject-tries", type=int, default=50)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2],
+                    help="tracker seeds per cell (the observations are the same)")
+    ap.add_argument("--clips", nargs="*", default=None,
+                    help="fig8: only these activities (fills the cache; the table needs all)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    {"fig8": fig8, "fig9a": fig9a, "fig10": fig10}[args.figure](args)
+    {"fig8": fig8, "fig9a": fig9a, "fig10": fig10, "control": control}[args.figure](args)
 
 
 if __name__ == "__main__":
