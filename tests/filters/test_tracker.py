@@ -141,3 +141,25 @@ def test_missing_modalities(walk):
         tr.step(st, {"silhouettes": obs[1]["silhouettes"]})
     with pytest.raises(ValueError, match="method"):
         TrackerConfig(method="zz")
+
+
+@pytest.mark.parametrize("name", ["p", "p_gaussian", "p_nonoise", "g", "gs", "rs", "l", "ls"])
+def test_preset_matches_the_composed_cli_config(name):
+    from hydra import compose, initialize_config_module
+
+    from torchmocap.cli.track import _tracker_config
+
+    with initialize_config_module(config_module="torchmocap.conf", version_base="1.3"):
+        cfg = compose(config_name="track", overrides=[f"tracker={name}"])
+    assert TrackerConfig.preset(name) == _tracker_config(cfg)
+
+
+def test_preset_values_and_errors():
+    gs = TrackerConfig.preset("gs", num_particles=50)
+    assert (gs.method, gs.ori_cost, gs.w_ori, gs.num_particles) == ("gs", "linear", 0.5, 50)
+    assert TrackerConfig.preset("p_nonoise").noise == "none"
+    assert TrackerConfig.preset("p") == TrackerConfig()  # the dataclass defaults are P's
+    with pytest.raises(ValueError, match="unknown tracker preset 'nope'"):
+        TrackerConfig.preset("nope")
+    with pytest.raises(ValueError, match="ori_cost"):
+        TrackerConfig(ori_cost="cubic")

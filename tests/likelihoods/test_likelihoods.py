@@ -327,3 +327,22 @@ def test_capsule_model_matches_the_rasterised_capsule_body():
     shifted[0, 0] += 0.01
     v1 = silhouette_energy(body.endpoints(sk(shifted)), body.radii, rig, obs)
     assert v1.item() > v.item() + 0.005
+
+
+def test_orientation_energy_linear_and_squared():
+    R = so3_exp(torch.tensor([[0.0, 0.0, 0.3], [0.1, 0.0, 0.0]], dtype=torch.float64))
+    eye = torch.eye(3, dtype=torch.float64).expand(2, 3, 3)
+    lin = orientation_energy(R[None], eye, eye, power=1)
+    assert lin.item() == pytest.approx((0.3 + 0.1) / 2, rel=1e-12)
+    sq = orientation_energy(R[None], eye, eye)
+    assert sq.item() == pytest.approx((0.09 + 0.01) / 2, rel=1e-12)
+    valid = torch.tensor([True, False])
+    assert orientation_energy(R[None], eye, eye, valid, power=1).item() == pytest.approx(0.3)
+    # finite gradient of the linear cost at zero error (the atan2 geodesic angle)
+    x = torch.zeros(1, 3, dtype=torch.float64, requires_grad=True)
+    orientation_energy(so3_exp(x)[None], eye[:1], eye[:1], power=1).sum().backward()
+    assert torch.isfinite(x.grad).all()
+    with pytest.raises(ValueError, match="power"):
+        orientation_energy(R[None], eye, eye, power=3)
+    with pytest.raises(ValueError, match="power"):
+        OrientationLikelihood(human31(), ["l_elbow"], power=0)

@@ -83,6 +83,7 @@ class TrackerConfig:
     w_silh: float = 2.0
     w_app: float = 40.0
     w_ori: float = 2.0
+    ori_cost: str = "squared"
     reject_deg: float = 10.0
     reject_tries: int = 200
     predictor: str = "damped"
@@ -93,11 +94,46 @@ class TrackerConfig:
     local_iterations: int = 40
     local_lr: float = 0.02
 
+    @classmethod
+    def preset(cls, name: str, **overrides) -> TrackerConfig:
+        """The bundled ``conf/tracker/<name>.yaml`` (what ``tracker=<name>`` selects on the
+        command line), with ``overrides`` applied on top.
+
+        Example:
+            >>> TrackerConfig.preset("gs", num_particles=100).ori_cost
+            'linear'
+        """
+        from pathlib import Path
+
+        from omegaconf import OmegaConf
+
+        root = Path(__file__).resolve().parents[1] / "conf" / "tracker"
+
+        def load(n: str, seen: tuple = ()) -> dict:
+            path = root / f"{n}.yaml"
+            if not path.is_file() or n in seen:
+                names = sorted(q.stem for q in root.glob("*.yaml"))
+                raise ValueError(f"name: unknown tracker preset {n!r}; expected one of {names}")
+            own = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+            defaults = own.pop("defaults", [])
+            out: dict = {}
+            for item in defaults + ([] if "_self_" in defaults else ["_self_"]):
+                out.update(own if item == "_self_" else load(item, seen + (n,)))
+            return out
+
+        spec = load(name)
+        spec.update(overrides)
+        if "damping" in spec:
+            spec["damping"] = tuple(spec["damping"])
+        return cls(**spec)
+
     def __post_init__(self):
         if self.method not in METHODS:
             raise ValueError(f"method: expected one of {METHODS}, got {self.method!r}")
         if self.noise not in NOISES:
             raise ValueError(f"noise: expected one of {NOISES}, got {self.noise!r}")
+        if self.ori_cost not in ("linear", "squared"):
+            raise ValueError(f"ori_cost: expected 'linear' or 'squared', got {self.ori_cost!r}")
         if self.diffusion not in ("covariance", "geometric"):
             raise ValueError(
                 f"diffusion: expected 'covariance' or 'geometric', got {self.diffusion!r}"
@@ -252,7 +288,8 @@ class Tracker:
 
         def energy(theta):
             R = self.skeleton(theta, check_finite=False).rotations[..., bones, :, :]
-            return orientation_energy(R, R_bs, R_ts, valid)
+            return orientation_energy(R, R_bs, R_ts, valid,
+                                      1 if self.cfg.ori_cost == "linear" else 2)
 
         return energy
 
