@@ -72,7 +72,7 @@ def run_one(seq, method: str, seed: int = 0, **overrides) -> dict:
     sensors = {n: b for n, b, t in zip(names, bones, track) if t}
     val = [b for b, t in zip(bones, track) if not t]
     diagnose = overrides.pop("diagnose", False)
-    cfg = TrackerConfig(method=method, **overrides)
+    cfg = TrackerConfig.preset(method, **overrides)  # conf/tracker/<method>.yaml
     tr = Tracker(body, seq.rig.float(), cfg, sensors=sensors, seed=seed)
     out = tr.run(seq, theta0=gt.theta[0].float(), progress=False)
     extra = {}
