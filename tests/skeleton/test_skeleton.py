@@ -65,6 +65,18 @@ TOY = {
 }
 
 
+OBLIQUE = {  # axes that float32 cannot represent exactly (like the C frames of ASF skeletons)
+    "name": "oblique",
+    "joints": [
+        {"name": "root", "parent": None, "offset": [0.1, 0.2, 0.9], "axes": [[0.6, 0.8, 0.0]]},
+        {"name": "a", "parent": "root", "offset": [0.31, 0.07, 0.0],
+         "axes": [[0.0, 0.28, 0.96], [1 / 3**0.5, 1 / 3**0.5, 1 / 3**0.5]]},
+        {"name": "b", "parent": "a", "offset": [0.27, 0.0, 0.11], "axes": [[0.36, 0.0, 0.48]]},
+        {"name": "tip", "parent": "b", "offset": [0.25, 0.0, 0.0]},
+    ],
+}
+
+
 class TestSkeleton:
     def test_smoke(self, device, dtype):
         sk = human31().to(device=device, dtype=dtype)
@@ -115,7 +127,8 @@ class TestSkeleton:
         p = sk(th).positions
         assert p[j("l_elbow"), 0] > 0.3 and p[j("r_elbow"), 0] < -0.3  # both arms go outwards
 
-    @pytest.mark.parametrize("make", [human31, upper_body, lambda: Skeleton.from_dict(TOY)])
+    @pytest.mark.parametrize("make", [human31, upper_body, lambda: Skeleton.from_dict(TOY),
+                                      lambda: Skeleton.from_dict(OBLIQUE)])
     def test_feature_vs_loop(self, make):
         sk = make().double()
         gen = torch.Generator().manual_seed(0)

@@ -197,6 +197,13 @@ class Skeleton(nn.Module):
         self.register_buffer("upper", lim_t[:, 1].contiguous())
         self._build_plan(axes)
 
+    def _apply(self, fn, recurse: bool = True):
+        out = super()._apply(fn, recurse)
+        if self._K.dtype == torch.float64 and self._K.numel():
+            K = hat(self._axes64.to(self._K.device))
+            self._K, self._K2 = K.contiguous(), (K @ K).contiguous()
+        return out
+
     # ------------------------------------------------------------------ construction helpers
     @classmethod
     def from_dict(cls, spec: Mapping[str, Any]) -> Skeleton:
@@ -235,7 +242,10 @@ class Skeleton(nn.Module):
         J = self.num_joints
         rot_dofs = [d for d in range(self.num_dofs) if d not in self._trans_dofs]
         self._rot_dofs = rot_dofs
-        ax = torch.tensor(axes, dtype=torch.float32).reshape(-1, 3)
+        # the axes in float64 (kept off the module's buffers): a float64 copy of the skeleton
+        # rebuilds its axis algebra from them instead of upcasting float32 roundings
+        self._axes64 = torch.tensor(axes, dtype=torch.float64).reshape(-1, 3)
+        ax = self._axes64.float()
         K = hat(ax) if len(axes) else torch.zeros(0, 3, 3)
         self.register_buffer("_K", K.contiguous(), persistent=False)
         self.register_buffer("_K2", (K @ K).contiguous(), persistent=False)
