@@ -258,6 +258,7 @@ def fig9a(args):
                     [res[(m, n)]["seed_spread"] for n in counts], marker="o", capsize=3,
                     label=f"{m.upper()} (bars: seed spread)")
     ax.set_xscale("log")
+    ax.minorticks_off()
     ax.set_xticks(counts)
     ax.set_xticklabels([str(n) for n in counts])
     ax.set_xlabel("particles")
