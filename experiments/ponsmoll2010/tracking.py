@@ -322,7 +322,9 @@ def control(args):
     """P on the same clips when the observations come from the tracker's own capsule body
     (clean), from the skinned mesh (clean), and from the skinned mesh outdoors: separates the
     optimiser's share of the error from the body-model mismatch and the image corruption."""
-    conditions = [("capsules, clean", "clean", {"body": "capsules"}),
+    conditions = [("capsules, clean, fitted truth", "clean",
+                   {"body": "capsules", "ground_truth": "fitted"}),
+                  ("capsules, clean", "clean", {"body": "capsules"}),
                   ("skinned mesh, clean", "clean", {}),
                   ("skinned mesh, outdoor", "outdoor", {})]
     acts = ["walking", "jumping", "basketball"]

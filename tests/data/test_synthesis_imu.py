@@ -147,3 +147,49 @@ class TestImu:
             _imu(R, noise="laplace")
         with pytest.raises(ValueError, match="which"):
             _imu(R).select("all")
+
+
+@pytest.mark.parametrize("ground_truth", ["source", "fitted"])
+def test_ground_truth_source_vs_fitted(ground_truth):
+    """``fitted`` makes IMUs, ground truth and images come from one human31 pose: the sensor
+    manifold's g^-1 at the true active coordinates then returns the true passive joints."""
+    from torchmocap.data import load_scenario, synthesize
+    from torchmocap.data.subject import fit_subject
+    from torchmocap.geometry import geodesic_angle
+    from torchmocap.ik.sensor_manifold import SensorManifold
+    from torchmocap.io import bundled_clip_path, load_motion
+
+    clip = load_motion(bundled_clip_path()).resample(25).slice(0, 12)
+    subject = fit_subject(clip)
+    sc = load_scenario("clean", ground_truth=ground_truth,
+                       **{"silhouettes.enabled": False, "images.enabled": False,
+                          "depth.enabled": False, "joints2d.enabled": False})
+    seq = synthesize(subject, sc, seed=0)
+    gt = seq.ground_truth
+    sk = gt.build_skeleton().double()
+    fk = sk(gt.theta.double())
+    gap = geodesic_angle(fk.rotations, gt.rotations.double()).max()
+    sensors = {n: b for n, b, t in zip(seq.imu.names, seq.imu.bones,
+                                       seq.imu.tracking.tolist()) if t}
+    tk = seq.imu.tracking.nonzero()[:, 0]
+    m = SensorManifold(sk, sensors)
+    m.calibrate(gt.theta[0].double(), quaternion_to_matrix(seq.imu.quaternions[0, tk].double()))
+    t = 11
+    th = gt.theta[t].double()
+    inv = m.inverse(th[m.active_index][None], quaternion_to_matrix(
+        seq.imu.quaternions[t, tk].double()), reference=th).theta[0]
+    err = (inv - th).abs().max()
+    if ground_truth == "fitted":
+        assert gap < 1e-9  # ground truth = FK of the fitted angles
+        assert err < 1e-5
+    else:
+        assert gap > math.radians(0.5)  # the exact source orientations differ from the fit
+        assert torch.allclose(gt.rotations, subject.rotations.to(gt.rotations.dtype))
+
+
+def test_ground_truth_option_checked():
+    from torchmocap.data import load_scenario
+    from torchmocap.data.scenario import ScenarioError
+
+    with pytest.raises(ScenarioError, match="ground_truth"):
+        load_scenario("clean", ground_truth="exact")

@@ -215,6 +215,11 @@ class Scenario:
         image_size: (width, height) of every camera image.
         fps: frame rate clips are resampled to.
         body: rendered surface: ``skinned`` (CC0 mesh) or ``capsules``.
+        ground_truth: ``source`` (default): joint positions and bone orientations of the ground
+            truth — and so the IMUs — are the exact motion-capture ones, while the images show
+            the closest human31 pose (1–3° per bone apart, more where human31 cannot follow,
+            e.g. forearm twist); ``fitted``: everything comes from the fitted human31 pose, so
+            all modalities are mutually consistent (controlled experiments).
         recenter: translate the motion so its mean pelvis ground position is at the rig's
             ground centre ``center`` (ground truth moves with it).
         center: ``[x, y]`` ground point (m) the motion is centred on.
@@ -228,6 +233,7 @@ class Scenario:
     image_size: list[int] = field(default_factory=lambda: [320, 240])
     fps: float = 25.0
     body: str = "skinned"
+    ground_truth: str = "source"
     recenter: bool = True
     center: list[float] = field(default_factory=lambda: [0.0, 0.0])
     light_direction: list[float] = field(default_factory=lambda: [0.4, 0.3, -1.0])
@@ -244,6 +250,8 @@ class Scenario:
     def validate(self) -> Scenario:
         """Check ranges; raises :class:`ScenarioError` naming the key."""
         _check(self.body in ("skinned", "capsules"), "body", "'skinned' or 'capsules'", self.body)
+        _check(self.ground_truth in ("source", "fitted"), "ground_truth", "'source' or 'fitted'",
+               self.ground_truth)
         _check(len(self.image_size) == 2 and all(int(v) > 0 for v in self.image_size),
                "image_size", "[width, height] > 0", self.image_size)
         _check(self.fps > 0, "fps", "> 0", self.fps)

@@ -263,9 +263,14 @@ def synthesize(
 
     # ---- ground truth (optionally re-centred)
     theta = subject.theta.detach().clone()
-    positions = subject.positions.detach().clone()
-    rotations = subject.rotations.detach().clone()
     sk = subject.skeleton
+    if sc.ground_truth == "fitted":  # every modality from the fitted human31 pose
+        with torch.no_grad():
+            kin = sk(theta)
+        positions, rotations = kin.positions.detach().clone(), kin.rotations.detach().clone()
+    else:  # exact source positions and orientations
+        positions = subject.positions.detach().clone()
+        rotations = subject.rotations.detach().clone()
     names = list(sk.joint_names)
     if sc.recenter:
         pel = positions[:, names.index("pelvis"), :2].mean(0)
