@@ -199,11 +199,9 @@ def project_points(points: Tensor, K: Tensor, R: Tensor, t: Tensor, dist: Tensor
     _check_last("points", points, (3,))
     C = _check_rig_params(K, dist, R, t)
     distorted = dist is not None and bool((dist != 0).any())
-    if not distorted and bool((K[:, 2] == K.new_tensor([0.0, 0.0, 1.0])).all()):
+    if not distorted and _third_row_is_unit(K):
         # pinhole fast path: one (K R | K t) transform gives (z u, z v, z) directly
-        KR = K @ R
-        Kt = (K @ t[..., None])[..., 0]
-        ph = world_to_camera(points, KR, Kt)  # (*, C, N, 3)
+        ph = world_to_camera(points, K @ R, (K @ t[..., None])[..., 0])  # (*, C, N, 3)
         depth = ph[..., 2]
         pixels = ph[..., :2] / depth.clamp_min(_DEPTH_EPS).unsqueeze(-1)
         return pixels, depth, _visible(pixels[..., 0], pixels[..., 1], depth, image_size, C)
@@ -233,6 +231,11 @@ def project_points(points: Tensor, K: Tensor, R: Tensor, t: Tensor, dist: Tensor
     return pixels, depth, visible & _visible(pixels[..., 0], pixels[..., 1], depth, image_size, C)
 
 
+def _third_row_is_unit(K: Tensor) -> bool:
+    """``K[:, 2] == (0, 0, 1)`` for every camera: ``K (R x + t)`` then has the depth as its z."""
+    return bool((K[:, 2] == K.new_tensor([0.0, 0.0, 1.0])).all())
+
+
 def _visible(u: Tensor, v: Tensor, depth: Tensor, image_size: Tensor | None, C: int) -> Tensor:
     """In front of the camera and (with ``image_size``) inside ``[-0.5, W-0.5) x [-0.5, H-0.5)``;
     ``u, v, depth (*, C, N)``."""
@@ -259,8 +262,7 @@ def project_points_planar(points: Tensor, K: Tensor, R: Tensor, t: Tensor,
     if points.dim() != 2 or points.shape[-1] != 3:
         raise ValueError(f"points: expected shape (M, 3), got {tuple(points.shape)}")
     C = _check_rig_params(K, dist, R, t)
-    distorted = dist is not None and bool((dist != 0).any())
-    if distorted or not bool((K[:, 2] == K.new_tensor([0.0, 0.0, 1.0])).all()):
+    if (dist is not None and bool((dist != 0).any())) or not _third_row_is_unit(K):
         pix, depth, visible = project_points(points, K, R, t, dist, image_size)
         return pix[..., 0], pix[..., 1], depth, visible
     KR = (K @ R).reshape(3 * C, 3)

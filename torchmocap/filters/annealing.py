@@ -87,7 +87,7 @@ def annealing_log_weights(energies: torch.Tensor, beta: torch.Tensor | float) ->
     return torch.where(finite, lw, -math.inf)
 
 
-_GRID = 64  # log-beta grid points per pass of :func:`ess_target_beta`
+_GRID = 64  # log-beta grid points of the bracketing pass of :func:`ess_target_beta`
 
 
 def _lse(x: torch.Tensor) -> torch.Tensor:

@@ -32,7 +32,6 @@ from torch import nn
 __all__ = [
     "SilhouetteObservation",
     "SilhouetteLikelihood",
-    "project_capsules",
     "silhouette_energy",
     "prepare_silhouettes",
     "render_capsule_silhouettes",
@@ -100,25 +99,6 @@ def prepare_silhouettes(masks: torch.Tensor, num_samples: int = 150, blur: float
     dev = masks.device
     return SilhouetteObservation(m.to(dev), F.pad(m, (1, 1, 1, 1)).to(dev), b.to(dev),
                                  pix.to(dev), pv.to(dev), valid.to(dev))
-
-
-def project_capsules(endpoints: torch.Tensor, radii: torch.Tensor, rig) -> tuple[torch.Tensor, ...]:
-    """Project capsule axes ``(P, B, 2, 3)`` with radii ``(B,)`` into every camera.
-
-    Returns ``ends (P, C, B, 2, 2)`` pixel endpoints, ``rpx (P, C, B, 2)`` pixel radii at both
-    ends (``f r / z``), ``front (P, C, B)`` both ends in front of the camera.
-    """
-    P, B = endpoints.shape[:2]
-    pix, depth, _ = rig.project(endpoints.reshape(P, B * 2, 3))
-    C = pix.shape[1]
-    ends = pix.reshape(P, C, B, 2, 2)
-    z = depth.reshape(P, C, B, 2)
-    K = rig.K.to(endpoints.dtype)
-    f = 0.5 * (K[:, 0, 0] + K[:, 1, 1])  # (C,)
-    front = (z > 1e-3).all(-1)
-    r = radii.to(endpoints.dtype)[None, None, :, None]
-    rpx = f[None, :, None, None] * r / z.clamp_min(1e-3)
-    return ends, rpx, front
 
 
 class _Stadiums(NamedTuple):
