@@ -24,8 +24,18 @@ import torch
 
 from torchmocap.geometry.subproblems import three_axis_decomposition
 from torchmocap.ik import SensorManifold
-from torchmocap.proposals import NOISE_MODELS, ManifoldProposal, ProposalContext
+from torchmocap.proposals import (
+    ManifoldProposal,
+    NoSensorNoise,
+    PassiveGaussianNoise,
+    ProposalContext,
+    TangentGaussianNoise,
+    VonMisesFisherNoise,
+)
 from torchmocap.skeleton import human31
+
+NOISES = {"none": NoSensorNoise, "gaussian": PassiveGaussianNoise, "vmf": VonMisesFisherNoise,
+          "tangent_gaussian": TangentGaussianNoise}
 
 
 def best_time(fn, repeats: int = 15, inner: int = 10) -> tuple[float, float]:
@@ -60,9 +70,10 @@ def main() -> None:
     print("| particles | noise | residuals | ms / frame (wall, best) | ms (CPU) |")
     print("|---:|---|---|---:|---:|")
     for P in (200, 3000):
-        for noise in NOISE_MODELS:
+        for noise in NOISES:
             for res in (False, True):
-                prop = ManifoldProposal(m, active_std=0.05, noise=noise, compute_residual=res)
+                prop = ManifoldProposal(m, active_std=0.05, noise=NOISES[noise](),
+                                        compute_residual=res)
                 w, c = best_time(lambda prop=prop, P=P: prop.sample(ctx, P, g), args.repeats)
                 rows.append((P, noise, res, w, c))
                 print(f"| {P} | {noise} | {'yes' if res else 'no'} | {w * 1e3:.3f} | "
@@ -72,7 +83,8 @@ def main() -> None:
     t0 = time.perf_counter()
     for P in (200, 3000):
         for noise in ("none", "vmf"):
-            prop = ManifoldProposal(mc, active_std=0.05, noise=noise, compute_residual=False)
+            prop = ManifoldProposal(mc, active_std=0.05, noise=NOISES[noise](),
+                                    compute_residual=False)
             w, c = best_time(lambda prop=prop, P=P: prop.sample(ctx, P, g), args.repeats)
             print(f"| {P} | {noise}, compiled g^-1 | no | {w * 1e3:.3f} | {c * 1e3:.3f} |",
                   flush=True)
@@ -95,7 +107,8 @@ def main() -> None:
     if args.profile:
         from torch.profiler import profile
 
-        prop = ManifoldProposal(m, active_std=0.05, noise="vmf", compute_residual=False)
+        prop = ManifoldProposal(m, active_std=0.05, noise=VonMisesFisherNoise(),
+                                compute_residual=False)
         for _ in range(5):
             prop.sample(ctx, 200, g)
         with profile() as prof:

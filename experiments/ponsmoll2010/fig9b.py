@@ -38,6 +38,7 @@ from torchmocap.proposals import (
     ManifoldProposal,
     ProposalContext,
     RejectionProposal,
+    VonMisesFisherNoise,
 )
 from torchmocap.skeleton import human31
 
@@ -97,8 +98,8 @@ def main() -> None:
         sensors = m.sensor_orientations(theta0)
         ctx = ProposalContext(previous=theta0, sensors=sensors)
         # --- manifold sampling
-        ms = ManifoldProposal(m, active_std=std[m.active_index], noise="vmf", kappa=1000.0,
-                              compute_residual=False)
+        ms = ManifoldProposal(m, active_std=std[m.active_index],
+                              noise=VonMisesFisherNoise(1000.0), compute_residual=False)
         g = torch.Generator().manual_seed(args.seed)
         t_ms = best_time(lambda ms=ms, ctx=ctx, g=g: ms.sample(ctx, P, g))
         # --- rejection sampling

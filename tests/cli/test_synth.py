@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_module
 
-from torchmocap.cli.synth import resolve_clip_path, run
+from torchmocap.cli.synth import run
 from torchmocap.data import Sequence
 
 SMALL_SCENARIO = """\
@@ -39,8 +39,11 @@ class TestSynthCli:
         assert cfg.data.scenario == "outdoor" and cfg.seed == 4 and cfg.data.clip.frames == 10
 
     def test_default_clip_is_bundled(self):
-        p = resolve_clip_path(None)
+        from torchmocap.data.loaders import bundled_clip_path
+
+        p = bundled_clip_path()
         assert p.name == "cmu_131_01_walk.bvh" and p.is_file()
+        assert _compose([]).data._target_ == "torchmocap.data.loaders.synthesized_sequence"
 
     def test_run_in_process(self, tmp_path):
         scen = tmp_path / "tiny.yaml"

@@ -11,7 +11,10 @@ import torch
 
 from torchmocap.body import CapsuleBody
 from torchmocap.cameras import make_ring_rig
-from torchmocap.geometry import so3_exp
+from torchmocap.data import Frame
+from torchmocap.geometry import matrix_to_quaternion, so3_exp
+from torchmocap.ik import SensorManifold
+from torchmocap.likelihoods import Poses
 from torchmocap.likelihoods.appearance import AppearanceLikelihood
 from torchmocap.likelihoods.orientation import OrientationLikelihood, orientation_energy
 from torchmocap.likelihoods.silhouette import (
@@ -40,17 +43,24 @@ def scene():
 
 def test_hard_silhouette_zero_at_truth_and_grows(scene):
     sk, body, rig, th, masks = scene
-    obs = prepare_silhouettes(masks, 200)
-    lik = SilhouetteLikelihood(body, rig)
-    assert lik.energy(th[None], obs).item() == pytest.approx(0.0, abs=1e-3)
+    lik = SilhouetteLikelihood(body, rig, fg_samples=200)
+    obs = lik.prepare(Frame(index=0, time=0.0, silhouettes=masks))
+    assert lik.energy(Poses(th[None], sk), obs).item() == pytest.approx(0.0, abs=1e-3)
     g = torch.Generator().manual_seed(0)
     energies = []
     for scale in (0.05, 0.15, 0.4):
         pert = th + scale * torch.randn(64, sk.num_dofs, generator=g)
         pert[:, :3] = th[:3]
-        energies.append(lik.energy(pert, obs).mean().item())
+        energies.append(lik.energy(Poses(pert, sk), obs).mean().item())
     assert 0 < energies[0] < energies[1] < energies[2] <= 1
-    assert torch.allclose(lik(th[None], obs), -2.0 * lik.energy(th[None], obs))
+    assert torch.equal(lik(Poses(th[None], sk), obs), lik.energy(Poses(th[None], sk), obs))
+    assert lik.requires == ("silhouettes",)
+    # a dropped view flagged in the frame is excluded by prepare()
+    bad = masks.clone()
+    bad[1] = torch.roll(bad[1], 40, dims=1)
+    dropped = lik.prepare(Frame(index=0, time=0.0, silhouettes=bad,
+                                view_dropped=torch.tensor([False, True, False, False])))
+    assert lik.energy(Poses(th[None], sk), dropped).item() == pytest.approx(0.0, abs=1e-3)
 
 
 def test_both_directions_count(scene):
@@ -79,18 +89,23 @@ def test_dropped_view_ignored(scene):
 
 def test_smooth_silhouette_differentiable_and_descends(scene):
     sk, body, rig, th, masks = scene
-    obs = prepare_silhouettes(masks, 200)
-    lik = SilhouetteLikelihood(body, rig, smooth=True)
+    lik = SilhouetteLikelihood(body, rig, smooth=True, fg_samples=200)
+    assert lik.blur == 1.5
+    obs = lik.prepare(Frame(index=0, time=0.0, silhouettes=masks))
     x = th.clone()
     x[sk.dof_index("l_elbow_flex")] = 0.6
     x = x[None].requires_grad_(True)
-    e = lik.energy(x, obs)
+
+    def V(t):
+        return lik.energy(Poses(t, sk), obs)
+
+    e = V(x)
     e.sum().backward()
     assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
     # finite differences agree with autograd along the gradient direction
     d = -x.grad / x.grad.norm()
     h = 1e-3
-    fd = (lik.energy(x.detach() + h * d, obs) - lik.energy(x.detach() - h * d, obs)) / (2 * h)
+    fd = (V(x.detach() + h * d) - V(x.detach() - h * d)) / (2 * h)
     assert fd.item() == pytest.approx(-x.grad.norm().item(), rel=0.1)
     assert fd.item() < 0  # a descent direction
 
@@ -111,13 +126,27 @@ def test_orientation_energy_closed_form():
 
 def test_orientation_likelihood_module():
     sk = human31()
-    lik = OrientationLikelihood(sk, ["l_elbow", "r_knee"], weight=3.0)
+    m = SensorManifold(sk, {"a": "l_elbow", "b": "r_knee"})
+    lik = OrientationLikelihood(m)
     th = sk.zero_pose((2,))
     th[1, sk.dof_index("l_elbow_flex")] = 0.5
     meas = sk(th[0]).rotations[[sk.joint_index("l_elbow"), sk.joint_index("r_knee")]]
-    ll = lik(th, torch.eye(3).expand(2, 3, 3), meas)
-    assert ll[0].item() == pytest.approx(0.0, abs=1e-10)
-    assert ll[1].item() == pytest.approx(-3.0 * 0.5**2 / 2, rel=1e-4)
+    frame = Frame(index=0, time=0.0, imu=matrix_to_quaternion(meas))
+    e = lik.energy(Poses(th, sk), lik.prepare(frame))
+    assert e[0].item() == pytest.approx(0.0, abs=1e-6)
+    assert e[1].item() == pytest.approx(0.5**2 / 2, rel=1e-4)
+    # calibrated offsets R_SB are applied: sensors rotated on the bone read the same energy
+    off = so3_exp(torch.tensor([[0.3, 0.0, 0.1], [0.0, -0.2, 0.0]]))
+    m.calibrate(th[0], meas @ off.transpose(-1, -2))  # R_TS = R_TB R_SB^T
+    frame = Frame(index=0, time=0.0, imu=matrix_to_quaternion(meas @ off.transpose(-1, -2)))
+    e2 = lik.energy(Poses(th, sk), lik.prepare(frame))
+    assert torch.allclose(e2, e, atol=1e-5)
+    lin = OrientationLikelihood(m, power=1)
+    assert lin.energy(Poses(th, sk), lin.prepare(frame))[1].item() == pytest.approx(
+        0.5 / 2, rel=1e-4)
+    assert lik.requires == ("imu",)
+    with pytest.raises(ValueError, match="sensors"):
+        lik.prepare(Frame(index=0, time=0.0, imu=torch.zeros(3, 4)))
 
 
 def test_appearance_prefers_the_true_pose(scene):
@@ -130,14 +159,16 @@ def test_appearance_prefers_the_true_pose(scene):
     imgs[..., 0] = torch.where(masks, torch.tensor(230, dtype=torch.uint8),
                                torch.tensor(0, dtype=torch.uint8))
     imgs[..., 1] = torch.where(masks, torch.tensor(40, dtype=torch.uint8), imgs[..., 1])
-    lik = AppearanceLikelihood(body, rig)
-    e_true = lik.energy(th[None], imgs).item()
+    lik = AppearanceLikelihood(body, rig, axial=4, around=6)
+    obs = lik.prepare(Frame(index=0, time=0.0, images=imgs))
+    e_true = lik.energy(Poses(th[None], sk), obs).item()
     far = th.clone()
     far[:2] += torch.tensor([0.3, -0.2])
-    e_far = lik.energy(far[None], imgs).item()
+    e_far = lik.energy(Poses(far[None], sk), obs).item()
     assert e_true < 0.02 < e_far
+    assert lik.requires == ("images",)
     with pytest.raises(ValueError, match="images"):
-        lik.energy(th[None], imgs[..., 0])
+        lik.prepare(Frame(index=0, time=0.0, images=imgs[..., 0]))
 
 
 def test_prepare_exceptions():
@@ -345,4 +376,4 @@ def test_orientation_energy_linear_and_squared():
     with pytest.raises(ValueError, match="power"):
         orientation_energy(R[None], eye, eye, power=3)
     with pytest.raises(ValueError, match="power"):
-        OrientationLikelihood(human31(), ["l_elbow"], power=0)
+        OrientationLikelihood(SensorManifold(human31()), power=0)

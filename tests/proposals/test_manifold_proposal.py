@@ -1,4 +1,4 @@
-"""ManifoldProposal (noise models none / gaussian / vmf / tangent_gaussian) and the base pieces."""
+"""ManifoldProposal with each sensor-noise model, and the base pieces of the proposal interface."""
 
 from __future__ import annotations
 
@@ -11,15 +11,25 @@ from torchmocap.distributions import kappa_to_tangent_std
 from torchmocap.geometry import geodesic_angle, matrix_to_quaternion
 from torchmocap.ik import SensorManifold
 from torchmocap.proposals import (
-    NOISE_MODELS,
     GaussianDiffusionProposal,
     ManifoldProposal,
+    NoSensorNoise,
+    PassiveGaussianNoise,
     ProposalContext,
+    TangentGaussianNoise,
+    VonMisesFisherNoise,
     select_ancestors,
 )
 from torchmocap.skeleton import human31
 
 F64 = torch.float64
+
+NOISES = {
+    "none": lambda kappa=1000.0: NoSensorNoise(),
+    "gaussian": lambda kappa=1000.0: PassiveGaussianNoise(kappa=kappa),
+    "vmf": lambda kappa=1000.0: VonMisesFisherNoise(kappa),
+    "tangent_gaussian": lambda kappa=1000.0: TangentGaussianNoise(kappa=kappa),
+}
 
 
 @pytest.fixture(scope="module")
@@ -68,14 +78,47 @@ class TestBase:
             GaussianDiffusionProposal([0.1, 0.2], 3)
         with pytest.raises(ValueError, match="std"):
             GaussianDiffusionProposal(-1.0, 3)
+        with pytest.raises(ValueError, match="boundary"):
+            GaussianDiffusionProposal(1.0, 3, boundary="wrap")
+        with pytest.raises(ValueError, match="rotation_std_deg"):
+            GaussianDiffusionProposal.from_skeleton(human31(), rotation_std_deg=float("nan"))
+        p = GaussianDiffusionProposal(1.0, 3)
+        with pytest.raises(ValueError, match="context.std"):
+            p.sample(ProposalContext(torch.zeros(3), std=torch.ones(4)), 5)
+        with pytest.raises(ValueError, match="context.scale"):
+            p.sample(ProposalContext(torch.zeros(3), scale=-1.0), 5)
+
+    def test_feature_context_std_and_scale(self):
+        """An annealer's per-layer std replaces the proposal's own; ``scale`` multiplies it."""
+        g = torch.Generator().manual_seed(7)
+        p = GaussianDiffusionProposal([0.1, 0.2, 0.3], 3)
+        prev = torch.zeros(3, dtype=F64)
+        own = p.sample(ProposalContext(prev, scale=0.5), 40000, g).particles.std(0)
+        assert torch.allclose(own, torch.tensor([0.05, 0.1, 0.15], dtype=F64), rtol=0.03)
+        std = torch.tensor([0.4, 0.0, 0.01], dtype=F64)
+        got = p.sample(ProposalContext(prev, std=std, scale=0.5), 40000, g).particles.std(0)
+        assert torch.allclose(got, std, rtol=0.03)
+        assert torch.equal(p.coordinates(prev), prev) and torch.equal(p.coordinate_std, p.std)
+
+    def test_feature_from_skeleton(self):
+        sk = human31()
+        p = GaussianDiffusionProposal.from_skeleton(sk, rotation_std_deg=2.0,
+                                                    translation_std=0.05, boundary="reflect")
+        assert p.std[sk.translation_dofs].tolist() == pytest.approx([0.05] * 3)
+        rot = [d for d in range(31) if d not in sk.translation_dofs]
+        assert torch.allclose(p.std[rot], torch.full((28,), math.radians(2.0)))
+        x = p.sample(ProposalContext(sk.upper.clone().clamp(max=10)), 500,
+                     torch.Generator().manual_seed(0)).particles
+        assert bool(sk.within_limits(x).all())  # reflected into the limits
 
 
 class TestManifoldProposal:
-    @pytest.mark.parametrize("noise", NOISE_MODELS)
+    @pytest.mark.parametrize("noise", list(NOISES))
     def test_smoke(self, setup, noise):
         sk, m, th = setup
-        prop = ManifoldProposal(m, active_std=0.05, noise=noise, compute_residual=True)
-        assert not ManifoldProposal(m, noise=noise).compute_residual  # orthogonal axes: off
+        prop = ManifoldProposal(m, active_std=0.05, noise=NOISES[noise](),
+                                compute_residual=True)
+        assert not ManifoldProposal(m, noise=NOISES[noise]()).compute_residual  # orthogonal
         ctx = ProposalContext(previous=th, sensors=m.sensor_orientations(th))
         out = prop.sample(ctx, 50, torch.Generator().manual_seed(0))
         assert out.particles.shape == (50, 31) and out.particles.dtype == F64
@@ -85,7 +128,7 @@ class TestManifoldProposal:
 
     def test_feature_none_matches_sensors_exactly(self, setup):
         sk, m, th = setup
-        prop = ManifoldProposal(m, active_std=0.1, noise="none")
+        prop = ManifoldProposal(m, active_std=0.1, noise=NoSensorNoise())
         S = m.sensor_orientations(th)
         out = prop.sample(ProposalContext(previous=th, sensors=S), 2000,
                           torch.Generator().manual_seed(1))
@@ -107,7 +150,7 @@ class TestManifoldProposal:
         """Bone orientation error = angle of the sensor noise: median 176/sqrt(kappa) deg."""
         sk, m, th = setup
         kappa = 400.0
-        prop = ManifoldProposal(m, active_std=0.0, noise=noise, kappa=kappa)
+        prop = ManifoldProposal(m, active_std=0.0, noise=NOISES[noise](kappa))
         S = m.sensor_orientations(th)
         out = prop.sample(ProposalContext(previous=th, sensors=S), 4000,
                           torch.Generator().manual_seed(2))
@@ -118,7 +161,7 @@ class TestManifoldProposal:
 
     def test_feature_gaussian_on_passive_parameters(self, setup):
         sk, m, th = setup
-        prop = ManifoldProposal(m, active_std=0.0, noise="gaussian", kappa=1000.0)
+        prop = ManifoldProposal(m, active_std=0.0, noise=PassiveGaussianNoise(kappa=1000.0))
         out = prop.sample(ProposalContext(previous=th, sensors=m.sensor_orientations(th)),
                           8000, torch.Generator().manual_seed(3))
         d = out.particles - th
@@ -131,7 +174,7 @@ class TestManifoldProposal:
         sk, m, th = setup
         g = torch.Generator().manual_seed(4)
         prev = th + 0.05 * torch.randn(30, 31, generator=g, dtype=F64)
-        prop = ManifoldProposal(m, active_std=0.0, noise="none")
+        prop = ManifoldProposal(m, active_std=0.0, noise=NoSensorNoise())
         S = m.sensor_orientations(th)
         out = prop.sample(ProposalContext(previous=prev, sensors=S), 30, g)
         assert torch.allclose(m(out.particles), torch.clamp(m(prev), prop.active_lower.double(),
@@ -141,10 +184,12 @@ class TestManifoldProposal:
 
     def test_exception(self, setup):
         sk, m, th = setup
-        with pytest.raises(ValueError, match="noise"):
+        with pytest.raises(TypeError, match="noise"):
             ManifoldProposal(m, noise="cauchy")
         with pytest.raises(ValueError, match="kappa"):
-            ManifoldProposal(m, kappa=0.0)
+            VonMisesFisherNoise(kappa=0.0)
+        with pytest.raises(ValueError, match="std_deg"):
+            TangentGaussianNoise(std_deg=-1.0)
         with pytest.raises(ValueError, match="active_std"):
             ManifoldProposal(m, active_std=[0.1, 0.2])
         with pytest.raises(ValueError, match="sensors"):
@@ -155,8 +200,41 @@ class TestManifoldProposal:
 
     def test_module(self, setup):
         sk, m, th = setup
-        prop = ManifoldProposal(m, active_std=0.05, noise="vmf")
+        prop = ManifoldProposal(m, active_std=0.05, noise=VonMisesFisherNoise())
         ctx = ProposalContext(previous=th, sensors=m.sensor_orientations(th))
         a = prop(ctx, 20, torch.Generator().manual_seed(5)).particles
         b = prop.sample(ctx, 20, torch.Generator().manual_seed(5)).particles
         assert torch.equal(a, b)  # same seed, same particles
+
+    def test_feature_coordinates_and_layer_std(self, setup):
+        """The proposal's coordinates are the active ones; a per-layer std applies there."""
+        sk, m, th = setup
+        prop = ManifoldProposal(m, rotation_std_deg=3.0, translation_std=0.02,
+                                noise=NoSensorNoise(), clamp_active=False)
+        assert torch.equal(prop.coordinates(th), m(th))
+        trans = [i for i, d in enumerate(m.active_dofs) if d in sk.translation_dofs]
+        assert prop.coordinate_std[trans].tolist() == pytest.approx([0.02] * len(trans))
+        std = torch.full((m.num_active,), 0.01, dtype=F64)
+        out = prop.sample(ProposalContext(previous=th, sensors=m.sensor_orientations(th),
+                                          std=std), 20000, torch.Generator().manual_seed(8))
+        assert torch.allclose((m(out.particles) - m(th)).std(0), std, rtol=0.04)
+
+
+class TestSensorNoise:
+    def test_feature_sensor_rotations_angles(self):
+        """vMF and tangent noise at kappa = 1000 have the median angle 176/sqrt(kappa) deg."""
+        R = torch.eye(3, dtype=F64).expand(2, 3, 3)
+        for noise in (VonMisesFisherNoise(1000.0), TangentGaussianNoise(kappa=1000.0)):
+            Rn = noise.sensor_rotations(R, 5000, torch.Generator().manual_seed(0))
+            med = math.degrees(float(geodesic_angle(Rn, R.expand_as(Rn)).median()))
+            assert med == pytest.approx(176.0 / math.sqrt(1000.0), rel=0.05)
+        assert torch.equal(NoSensorNoise().sensor_rotations(R, 3), R.expand(3, 2, 3, 3))
+        assert torch.equal(PassiveGaussianNoise().sensor_rotations(R, 3), R.expand(3, 2, 3, 3))
+
+    def test_feature_passive_std(self):
+        th = torch.zeros(20000, 6, dtype=F64)
+        out = PassiveGaussianNoise(std_deg=2.0).perturb_passive(
+            th, torch.tensor([[1, 3, 5]]), torch.Generator().manual_seed(1))
+        assert float(out[:, [0, 2, 4]].abs().max()) == 0
+        assert torch.allclose(out[:, [1, 3, 5]].std(0), torch.full((3,), math.radians(2.0),
+                                                                    dtype=F64), rtol=0.03)

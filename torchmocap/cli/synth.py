@@ -1,8 +1,9 @@
 """``torchmocap-synth``: synthesise an observation :class:`~torchmocap.data.Sequence` (Hydra).
 
 Overrides: ``data.clip.path`` (null = the bundled CMU 131_01 walk), ``data.clip.asf``,
-``data.clip.skeleton_map``, ``data.clip.frames``, ``data.clip.skip_frames``, ``data.clip.fps``,
-``data.scenario`` (name or YAML path, see :func:`~torchmocap.data.load_scenario`), ``seed``.
+``data.clip.skeleton_map``, ``data.clip.frames``, ``data.clip.start``, ``data.clip.skip_frames``,
+``data.clip.fps``, ``data.scenario`` (name or YAML path, see
+:func:`~torchmocap.data.load_scenario`), ``data.scenario_overrides``, ``seed``.
 Writes ``sequence/`` (manifest.json, arrays.npz, PNG masks and images) and ``preview.png`` into
 the Hydra run directory. Unreadable clips or bad settings: one line on stderr, exit status 2.
 """
@@ -16,65 +17,14 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
-__all__ = ["main", "preview_image", "resolve_clip_path", "run", "sequence_from_config"]
+from torchmocap.cli.runs import load_sequence
 
-
-class _UsageError(Exception):
-    pass
-
-
-def resolve_clip_path(path: str | None) -> Path:
-    """The clip to read: ``path``, or the package's bundled walk when ``None``."""
-    if path is None or str(path) in ("", "null", "None"):
-        from importlib import resources
-
-        res = resources.files("torchmocap") / "assets" / "clips" / "cmu_131_01_walk.bvh"
-        return Path(str(res))
-    p = Path(hydra.utils.to_absolute_path(str(path)))
-    if not p.is_file():
-        raise _UsageError(f"data.clip.path: no such file: {p}")
-    return p
-
-
-def sequence_from_config(cfg: Any, min_frames: int = 1):
-    """The ``data`` node -> clip -> fitted subject -> synthesised :class:`Sequence`.
-
-    Shared by ``torchmocap-synth`` and ``torchmocap-track`` (same overrides, same errors).
-    """
-    from torchmocap.data import load_scenario, synthesize
-    from torchmocap.data.subject import fit_subject
-    from torchmocap.io import load_motion
-
-    clip_cfg = cfg.data.clip
-    path = resolve_clip_path(clip_cfg.path)
-    asf = hydra.utils.to_absolute_path(str(clip_cfg.asf)) if clip_cfg.asf else None
-    smap = clip_cfg.skeleton_map
-    if smap and Path(hydra.utils.to_absolute_path(str(smap))).is_file():
-        smap = hydra.utils.to_absolute_path(str(smap))
-    scenario = load_scenario(str(cfg.data.scenario) if not str(cfg.data.scenario).endswith(
-        (".yaml", ".yml")) else hydra.utils.to_absolute_path(str(cfg.data.scenario)))
-    clip = load_motion(path, asf=asf, skip_frames=int(clip_cfg.skip_frames or 0),
-                       skeleton_map=smap)
-    fps = float(clip_cfg.fps) if clip_cfg.fps else scenario.fps
-    if abs(clip.fps - fps) > 1e-6:
-        clip = clip.resample(fps)
-    frames = clip_cfg.frames
-    if frames is not None:
-        if int(frames) < min_frames:
-            raise _UsageError(f"data.clip.frames: expected >= {min_frames}, got {frames}")
-        if int(frames) < clip.num_frames:
-            clip = clip.slice(0, int(frames))
-    subject = fit_subject(clip, skeleton_map=smap)
-    seq = synthesize(subject, scenario, seed=int(cfg.seed))
-    seq.meta["clip"] = {"path": str(path), "asf": asf, "skeleton_map": smap,
-                        "skip_frames": int(clip_cfg.skip_frames or 0), "fps": fps,
-                        "frames": seq.num_frames, "family": subject.family}
-    return seq
+__all__ = ["main", "preview_image", "run"]
 
 
 def run(cfg: Any, out_dir: Path) -> dict[str, Any]:
     """Load the clip, fit the subject, synthesise, save ``out_dir/sequence`` and the preview."""
-    seq = sequence_from_config(cfg)
+    seq = load_sequence(cfg, min_frames=1)
     seq.save(out_dir / "sequence", overwrite=True)
     out = {"sequence": str(out_dir / "sequence"), "frames": seq.num_frames,
            "modalities": seq.modalities}
@@ -151,7 +101,7 @@ def _hydra_main(cfg: DictConfig) -> None:
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
         info = run(cfg, out_dir)
-    except (_UsageError, MotionFormatError, SkeletonMapError, ScenarioError, SynthesisError,
+    except (MotionFormatError, SkeletonMapError, ScenarioError, SynthesisError,
             CameraError, MissingModalityError, FileNotFoundError, KeyError, ValueError) as e:
         msg = str(e.args[0]) if isinstance(e, KeyError) and e.args else str(e)
         print(f"torchmocap-synth: error: {msg.splitlines()[0] if msg else type(e).__name__}",

@@ -1,12 +1,15 @@
-"""``torchmocap-track``: track a motion observed through synthesised sensors (Hydra CLI).
+"""``torchmocap-track``: track a sequence with a tracker assembled from config (Hydra CLI).
 
-Default: the bundled 4 s CMU walk, the ``studio`` scenario, method ``p`` (Pons-Moll et al.).
-Overrides: ``data.clip.path``, ``data.clip.asf``, ``data.clip.skeleton_map``, ``data.clip.frames``,
-``data.scenario``, ``tracker=<p|p_gaussian|p_nonoise|g|gs|rs|l|ls>``, ``tracker.num_particles``,
-``seed``; ``--multirun`` sweeps any of them; ``data=bodytrack`` fits the real bodytrack frame.
-Writes into the Hydra run directory: ``metrics.json``, ``track.npz``, ``tracked.bvh``,
-``overlay_XXXX.png`` and ``errors.png``. Failures print one line on stderr and exit with status 2;
-``metrics.json`` is written last and atomically, so a failed run never leaves one behind.
+Default: the bundled 3 s CMU walk, the ``studio`` scenario, tracker ``p`` (Pons-Moll et al.).
+The sequence comes from the ``data`` node (a ``_target_`` source: synthesised from a clip, or a
+real recording such as ``data=bodytrack``); the tracker is built from the ``tracker`` node by
+:func:`torchmocap.assembly.build_tracker` — the command line never reaches into components.
+
+Writes into the Hydra run directory: ``metrics.json`` (last, atomically), ``track.npz``,
+``tracked.bvh``, overlays and ``errors.png``. A failure prints one line on stderr, writes
+``failure.json`` and exits with status 2; in a multirun the other jobs go on and the command
+exits with status 2 at the end if any job failed. A run directory whose ``metrics.json`` has the
+same fingerprint (config, code, data files) is skipped as up to date.
 """
 
 from __future__ import annotations
@@ -15,115 +18,188 @@ import json
 import math
 import os
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import hydra
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-__all__ = ["main", "run", "write_json_atomic"]
+from torchmocap.cli.runs import (
+    config_fingerprint,
+    load_sequence,
+    read_json,
+    sweep_failed,
+    write_failure,
+    write_json_atomic,
+)
 
+__all__ = ["main", "run"]
+
+#: Validation bones when the sequence has no validation IMUs (Pons-Moll's five).
 VALIDATION_BONES_FALLBACK = ["spine", "l_shoulder", "r_shoulder", "l_hip", "r_hip"]
 
 
-class _UsageError(Exception):
-    pass
+def _sequence_fingerprint(seq) -> str:
+    import hashlib
 
+    import torch
 
-def write_json_atomic(obj: Any, path: Path) -> None:
-    """Write JSON to ``path`` through a temporary file and a rename."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(obj, f, indent=2)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def _sequence_from_config(cfg):
-    """Clip -> subject -> synthesised sequence, exactly as ``torchmocap-synth`` builds it."""
-    from torchmocap.cli import synth
-
-    try:
-        return synth.sequence_from_config(cfg, min_frames=2)
-    except synth._UsageError as e:
-        raise _UsageError(str(e)) from None
-
-
-def _tracker_config(cfg):
-    from torchmocap.filters.tracker import TrackerConfig
-
-    tc = OmegaConf.to_container(cfg.tracker, resolve=True)
-    tc["damping"] = tuple(tc.get("damping", (0.8, 0.3)))
-    return TrackerConfig(**tc)
+    h = hashlib.sha256()
+    for x in (seq.silhouettes, seq.images, None if seq.imu is None else seq.imu.quaternions,
+              None if seq.depth is None else seq.depth.points, seq.joints2d):
+        if isinstance(x, torch.Tensor):
+            h.update(x.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()[:16]
 
 
 def run(cfg: DictConfig, out: Path) -> dict:
     """Run the configured job; returns the metrics written to ``out/metrics.json``."""
-    if cfg.data.get("kind") == "bodytrack":
-        from torchmocap.cli.bodytrack import run_bodytrack
-
-        return run_bodytrack(cfg, out)
     import numpy as np
+    import torch
 
-    from torchmocap.body import CapsuleBody
-    from torchmocap.filters.tracker import Tracker
+    from torchmocap.assembly import Runtime, build_tracker
     from torchmocap.io import MotionClip, write_bvh
-    from torchmocap.metrics import mpjpe_mm, orientation_error_deg, summarize_errors
 
-    seq = _sequence_from_config(cfg)
-    tcfg = _tracker_config(cfg)
-    gt = seq.ground_truth
-    sk = gt.build_skeleton().float()
-    body = CapsuleBody(sk)
-    rig = seq.rig.float()
-    sensors = {}
-    if seq.imu is not None:
-        sensors = {n: b for n, b, t in zip(seq.imu.names, seq.imu.bones,
-                                            seq.imu.tracking.tolist()) if t}
-        val_bones = [b for b, t in zip(seq.imu.bones, seq.imu.tracking.tolist()) if not t]
-    else:
-        val_bones = VALIDATION_BONES_FALLBACK
-    tracker = Tracker(body, rig, tcfg, sensors=sensors, seed=int(cfg.seed))
+    fingerprint = config_fingerprint(cfg)
+    done = read_json(out / "metrics.json")
+    if isinstance(done, dict) and done.get("fingerprint") == fingerprint and \
+            cfg.get("skip_completed", True):
+        print(f"torchmocap-track: {out} is complete and up to date (fingerprint {fingerprint}); "
+              "skipped", file=sys.stderr)
+        return done
+    (out / "failure.json").unlink(missing_ok=True)
+    seq = load_sequence(cfg, min_frames=2)
+    runtime = Runtime.from_sequence(seq)
+    try:
+        tracker = build_tracker(cfg.tracker, runtime, seed=cfg.seed)
+        tracker.check_sequence(seq)
+    except ValueError as e:
+        hint = seq.meta.get("suggested_tracker")
+        if hint and cfg.tracker.get("name") != hint:
+            raise type(e)(f"{e} (this data is tracked with tracker={hint})") from e
+        raise
     ckpt = cfg.get("checkpoint")
     if ckpt:
-        ckpt = str(out / ckpt) if not os.path.isabs(str(ckpt)) else str(ckpt)
-    track = tracker.run(seq, theta0=gt.theta[0].float(), progress=bool(cfg.get("progress", True)),
-                        checkpoint=ckpt, checkpoint_every=int(cfg.get("checkpoint_every", 10)))
-
-    kin = sk(track.theta)
-    vb = [sk.joint_index(b) for b in val_bones]
-    ori = orientation_error_deg(kin.rotations[1:, vb], gt.rotations[1:, vb].float())
-    mp = mpjpe_mm(kin.positions[1:], gt.positions[1:].float())
-    metrics = {
-        "method": tcfg.method,
+        ckpt = str(ckpt) if os.path.isabs(str(ckpt)) else str(out / str(ckpt))
+    track = tracker.run(seq, progress=bool(cfg.get("progress", True)), checkpoint=ckpt,
+                        checkpoint_every=int(cfg.get("checkpoint_every", 10)),
+                        fingerprint=f"{fingerprint}-{_sequence_fingerprint(seq)}")
+    sk = runtime.skeleton
+    metrics: dict[str, Any] = {
+        "tracker": tracker.name,
         "frames": int(track.theta.shape[0]),
         "tracked_frames": int(track.theta.shape[0] - 1),
         "seconds_per_frame": track.seconds_per_frame,
-        "num_particles": tcfg.num_particles,
-        "layers": tcfg.layers,
+        "num_particles": tracker.num_particles,
+        "layers": getattr(tracker.inference, "layers", None),
         "scenario": seq.scenario,
         "seed": int(cfg.seed),
         "clip": seq.meta.get("clip", {}),
-        "validation_bones": val_bones,
-        **summarize_errors(ori, val_bones, mp),
+        "fingerprint": fingerprint,
+        **_diagnostics(track.infos),
     }
-    np.savez_compressed(out / "track.npz", theta=track.theta.numpy(),
-                        theta_gt=gt.theta.numpy(), orientation_error_deg=ori.numpy(),
-                        mpjpe_mm=mp.numpy(), dof_names=np.array(sk.dof_names))
+    arrays = {"theta": track.theta.numpy(), "dof_names": np.array(sk.dof_names)}
+    if seq.ground_truth is not None:
+        errors = _errors(seq, sk, track.theta)
+        metrics.update(errors.pop("summary"))
+        arrays.update({k: v.numpy() for k, v in errors.items()})
+        if cfg.get("diagnostics", {}).get("energy_vs_truth", False):
+            metrics["estimate_energy_below_truth"] = _energy_vs_truth(tracker, seq, track.theta)
+    else:
+        metrics["silhouette_iou"] = _iou(runtime, seq, track.theta)
+    for k in ("hull_top_m", "skeleton_scale", "source"):
+        if k in seq.meta:
+            metrics[k] = seq.meta[k]
+    np.savez_compressed(out / "track.npz", **arrays)
     write_bvh(out / "tracked.bvh", MotionClip.from_skeleton(sk.double(), track.theta.double(),
                                                             fps=seq.fps))
     sk.float()
-    _write_plots(out, seq, sk, body, track.theta, ori, mp, int(cfg.get("overlays", 3)),
-                 val_bones)
+    with torch.no_grad():
+        _write_plots(out, seq, runtime, track.theta, arrays, int(cfg.get("overlays", 3)))
     write_json_atomic(metrics, out / "metrics.json")
     return metrics
 
 
-def _write_plots(out, seq, sk, body, theta, ori, mp, n_overlays, val_bones):
+def _validation_bones(seq) -> list[str]:
+    if seq.imu is not None:
+        val = [b for b, t in zip(seq.imu.bones, seq.imu.tracking.tolist()) if not t]
+        if val:
+            return val
+    return VALIDATION_BONES_FALLBACK
+
+
+def _errors(seq, sk, theta) -> dict:
+    """Validation orientation error (eq. 19) and MPJPE of frames 1..T-1 against the truth."""
+    from torchmocap.metrics import mpjpe_mm, orientation_error_deg, summarize_errors
+
+    gt = seq.ground_truth
+    val = _validation_bones(seq)
+    kin = sk(theta)
+    vb = [sk.joint_index(b) for b in val]
+    ori = orientation_error_deg(kin.rotations[1:, vb], gt.rotations[1:, vb].float())
+    mp = mpjpe_mm(kin.positions[1:], gt.positions[1:].float())
+    summary = {"validation_bones": val, **summarize_errors(ori, val, mp)}
+    return {"summary": summary, "theta_gt": gt.theta, "orientation_error_deg": ori,
+            "mpjpe_mm": mp}
+
+
+def _energy_vs_truth(tracker, seq, theta) -> float:
+    """Fraction of frames whose estimate has a lower energy (the tracker's own likelihood)
+    than the true pose: > 0 means the likelihood's optimum is not the truth there."""
+    import torch
+
+    from torchmocap.likelihoods import FrameEnergy
+
+    tracking = None if seq.imu is None else seq.imu.tracking.nonzero()[:, 0]
+    below = []
+    for t in range(1, seq.num_frames):
+        frame = tracker.observe(seq.frame(t), tracking)
+        energy = FrameEnergy(tracker.likelihood, tracker.likelihood.prepare(frame),
+                             tracker.skeleton)
+        with torch.no_grad():
+            v = energy(torch.stack([seq.ground_truth.theta[t].to(theta.dtype), theta[t]]))
+        below.append(bool(v[1] < v[0]))
+    return sum(below) / max(len(below), 1)
+
+
+def _iou(runtime, seq, theta) -> dict:
+    """Per-view silhouette IoU of the model capsules against the masks (frames without truth)."""
+    from torchmocap.likelihoods import render_capsule_silhouettes, silhouette_iou
+
+    if seq.silhouettes is None or runtime.rig is None:
+        return {}
+    per = []
+    for t in range(seq.num_frames):
+        model = render_capsule_silhouettes(runtime.body, runtime.rig, theta[t])
+        per.append([float(v) for v in silhouette_iou(model, seq.silhouettes[t])])
+    last = per[-1]
+    return {"per_view": last, "mean": sum(last) / len(last),
+            "mean_over_frames": sum(sum(p) / len(p) for p in per) / len(per)}
+
+
+def _diagnostics(infos: list) -> dict:
+    """Per-run summaries of the per-frame diagnostics (ESS, proposal statistics, energy)."""
+    out: dict[str, Any] = {}
+    tracked = [i for i in infos[1:] if isinstance(i, dict)]
+    ess = [i["ess"][-1] for i in tracked if i.get("ess")]
+    if ess:
+        out["ess_final_mean"] = sum(ess) / len(ess)
+    rates = [i["proposal"]["acceptance_rate"] for i in tracked
+             if "acceptance_rate" in i.get("proposal", {})]
+    if rates:
+        out["acceptance_rate_mean"] = sum(rates) / len(rates)
+    energies = [i["energy"] for i in tracked if isinstance(i.get("energy"), dict)]
+    if energies:
+        out["energy_mean"] = {k: sum(e[k] for e in energies) / len(energies)
+                              for k in energies[0]}
+    if infos and infos[0].get("seconds") is not None:
+        out["seconds_first_frame"] = infos[0]["seconds"]
+        if "seconds_per_round" in infos[0]:
+            out["seconds_per_round"] = infos[0]["seconds_per_round"]
+    return out
+
+
+def _write_plots(out, seq, runtime, theta, arrays, n_overlays):
     import matplotlib
 
     matplotlib.use("Agg")
@@ -132,58 +208,78 @@ def _write_plots(out, seq, sk, body, theta, ori, mp, n_overlays, val_bones):
 
     from torchmocap.viz import overlay_on_image
 
+    sk, body = runtime.skeleton, runtime.body
     T = theta.shape[0]
-    t_axis = np.arange(1, T) / seq.fps
-    fig, ax = plt.subplots(2, 1, figsize=(7, 5), sharex=True)
-    for k, b in enumerate(val_bones):
-        ax[0].plot(t_axis, ori[:, k].numpy(), label=b, lw=1)
-    ax[0].plot(t_axis, ori.mean(1).numpy(), "k", lw=2, label="mean")
-    ax[0].set_ylabel("orientation error (deg)")
-    ax[0].legend(fontsize=7, ncol=3)
-    ax[1].plot(t_axis, mp.numpy(), "k")
-    ax[1].set_ylabel("MPJPE (mm)")
-    ax[1].set_xlabel("time (s)")
-    fig.tight_layout()
-    fig.savefig(out / "errors.png", dpi=100)
-    plt.close(fig)
-    if n_overlays <= 0 or seq.silhouettes is None:
+    if "orientation_error_deg" in arrays:
+        ori, mp = arrays["orientation_error_deg"], arrays["mpjpe_mm"]
+        t_axis = np.arange(1, T) / seq.fps
+        fig, ax = plt.subplots(2, 1, figsize=(7, 5), sharex=True)
+        for k, b in enumerate(_validation_bones(seq)):
+            ax[0].plot(t_axis, ori[:, k], label=b, lw=1)
+        ax[0].plot(t_axis, ori.mean(1), "k", lw=2, label="mean")
+        ax[0].set_ylabel("orientation error (deg)")
+        ax[0].legend(fontsize=7, ncol=3)
+        ax[1].plot(t_axis, mp, "k")
+        ax[1].set_ylabel("MPJPE (mm)")
+        ax[1].set_xlabel("time (s)")
+        fig.tight_layout()
+        fig.savefig(out / "errors.png", dpi=100)
+        plt.close(fig)
+    if n_overlays <= 0 or seq.silhouettes is None or runtime.rig is None:
+        return
+    if seq.ground_truth is None:  # a real recording: every view of the last frame
+        f = seq.frame(T - 1)
+        kin = sk(theta[T - 1])
+        for c in range(runtime.rig.num_cameras):
+            img = f.images[c] if f.images is not None else f.silhouettes[c].float()
+            overlay_on_image(img, runtime.rig, c, kin, out / f"overlay_cam{c + 1}.png",
+                             skeleton=sk, capsules=body, mask=f.silhouettes[c],
+                             title=f"camera {c + 1}: model (capsules) over the image")
         return
     frames = sorted({int(round(x)) for x in np.linspace(1, T - 1, n_overlays)})
     for t in frames:
         f = seq.frame(t)
         img = f.images[0] if f.images is not None else f.silhouettes[0].float()
-        kin = sk(theta[t])
-        overlay_on_image(img, seq.rig, 0, kin, out / f"overlay_{t:04d}.png", skeleton=sk,
-                         capsules=body, mask=f.silhouettes[0],
+        overlay_on_image(img, runtime.rig, 0, sk(theta[t]), out / f"overlay_{t:04d}.png",
+                         skeleton=sk, capsules=body, mask=f.silhouettes[0],
                          title=f"frame {t}: model (capsules) over camera 0")
+
+
+_KNOWN_ERRORS: tuple[type[BaseException], ...] = (ValueError, LookupError, OSError, TypeError)
 
 
 @hydra.main(config_path="../conf", config_name="track", version_base="1.3")
 def _hydra_main(cfg: DictConfig) -> float:
-    out = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    hc = HydraConfig.get()
+    out = Path(hc.runtime.output_dir)
+    multirun = hc.mode == RunMode.MULTIRUN
     try:
         metrics = run(cfg, out)
-    except Exception as e:  # one line, exit 2; metrics.json is only written on success
-        from torchmocap.data.sequence import MissingModalityError
-        from torchmocap.filters.tracker import MissingObservationError
-        from torchmocap.io import MotionFormatError, SkeletonMapError
-
-        known = (_UsageError, MotionFormatError, SkeletonMapError, MissingObservationError,
-                 MissingModalityError, FileNotFoundError, ValueError, KeyError)
-        if isinstance(e, known):
-            print(f"torchmocap-track: error: {e}", file=sys.stderr)
-            sys.exit(2)
-        raise
+    except Exception as e:
+        try:
+            fp = config_fingerprint(cfg)
+        except Exception:
+            fp = None
+        line = write_failure(out, e, fp, "torchmocap-track")
+        if not isinstance(e, _KNOWN_ERRORS) and not multirun:
+            raise  # a bug: show the traceback
+        print(f"torchmocap-track: error: {line}", file=sys.stderr)
+        if multirun:
+            return math.nan
+        sys.exit(2)
     _print_summary(metrics)
     return float(metrics.get("orientation_error_deg", {}).get("mean", math.nan))
 
 
 def _print_summary(m: dict) -> None:
     if "orientation_error_deg" not in m:
-        print(json.dumps(m, indent=2))
+        print(json.dumps({k: v for k, v in m.items() if k != "clip"}, indent=2))
         return
     o = m["orientation_error_deg"]
-    rows = [("method", m["method"]), ("scenario", m.get("scenario")), ("frames", m["frames"]),
+    rows = [("tracker", m["tracker"]), ("scenario", m.get("scenario")), ("frames", m["frames"]),
             ("particles x layers", f"{m['num_particles']} x {m['layers']}"),
             ("seconds / frame", f"{m['seconds_per_frame']:.3f}"),
             ("orientation error (deg)", f"{o['mean']:.2f} +- {o['std']:.2f}"),
@@ -195,8 +291,14 @@ def _print_summary(m: dict) -> None:
 
 
 def main() -> None:
-    """Console entry point."""
+    """Console entry point (exit status 2 when the run, or any job of a sweep, failed)."""
+    import warnings
+
+    # the repository's conf/ is on the search path only when run from the repository root
+    warnings.filterwarnings("ignore", message=r".*provider=hydra\.searchpath in main.*")
     _hydra_main()
+    if sweep_failed():
+        sys.exit(2)
 
 
 if __name__ == "__main__":

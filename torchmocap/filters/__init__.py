@@ -1,8 +1,7 @@
 """torchmocap.filters: resampling, annealing schedules, annealed particle optimisation,
-SIR steps, autoregressive prediction and local optimisation.
-
-Everything works on generic particle tensors ``(P, D)``; a Skeleton is only used optionally
-(limits, root rotation groups).
+SIR steps, autoregressive prediction, local optimisation — as functions on generic particle
+tensors ``(P, D)`` — and the tracker components built on them: per-frame inference modules,
+estimators, the pose predictor and the :class:`Tracker` loop.
 """
 
 from torchmocap.filters.annealed import (
@@ -26,9 +25,24 @@ from torchmocap.filters.annealing import (
     ess_target_beta,
     get_schedule,
 )
+from torchmocap.filters.estimators import (
+    BestParticleEstimator,
+    Estimator,
+    ManifoldMeanEstimator,
+    WeightedMeanEstimator,
+)
+from torchmocap.filters.inference import (
+    AnnealedInference,
+    Inference,
+    InferenceResult,
+    LocalInference,
+    ShrinkingDiffusion,
+    SpreadDiffusion,
+)
 from torchmocap.filters.local import LocalOptimiser, LocalResult, minimise_local
 from torchmocap.filters.prediction import (
     AutoregressivePredictor,
+    PosePredictor,
     RotationGroup,
     angles_from_matrix,
     fit_ar3,
@@ -58,9 +72,32 @@ from torchmocap.filters.resampling import (
     systematic_resample,
 )
 from torchmocap.filters.sir import SIRResult, SIRStep, sir_filter, sir_step
+from torchmocap.filters.tracker import (
+    CheckpointError,
+    MissingObservationError,
+    Track,
+    Tracker,
+    TrackState,
+)
 
 __all__ = [
+    "AnnealedInference",
     "AnnealedParticleOptimiser",
+    "BestParticleEstimator",
+    "CheckpointError",
+    "Estimator",
+    "Inference",
+    "InferenceResult",
+    "LocalInference",
+    "ManifoldMeanEstimator",
+    "MissingObservationError",
+    "PosePredictor",
+    "ShrinkingDiffusion",
+    "SpreadDiffusion",
+    "Track",
+    "TrackState",
+    "Tracker",
+    "WeightedMeanEstimator",
     "AnnealingResult",
     "AutoregressivePredictor",
     "BetaSolution",

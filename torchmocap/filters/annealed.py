@@ -44,6 +44,8 @@ from torchmocap.filters.annealing import (
     get_schedule,
 )
 from torchmocap.filters.resampling import effective_sample_size, get_resampler
+from torchmocap.proposals.bounds import as_bound as _as_bound
+from torchmocap.proposals.bounds import bound_particles
 
 __all__ = [
     "AnnealingResult",
@@ -67,54 +69,6 @@ mutation (between layers 0 and 1)."""
 # --------------------------------------------------------------------------------------------
 # pieces
 # --------------------------------------------------------------------------------------------
-
-
-def _as_bound(b, like: torch.Tensor, name: str, fill: float) -> torch.Tensor:
-    d = like.shape[-1]
-    if b is None:
-        return torch.full((d,), fill, dtype=like.dtype, device=like.device)
-    t = torch.as_tensor(b, dtype=like.dtype, device=like.device)
-    if t.dim() == 0:
-        t = t.expand(d)
-    if t.shape != (d,):
-        raise ValueError(f"{name}: expected a scalar or shape ({d},), got {tuple(t.shape)}")
-    if bool(torch.isnan(t).any()):
-        raise ValueError(f"{name}: contains NaN")
-    return t
-
-
-def bound_particles(
-    x: torch.Tensor,
-    lower: torch.Tensor | float | None = None,
-    upper: torch.Tensor | float | None = None,
-    mode: str = "clamp",
-) -> torch.Tensor:
-    """Project particles ``x (..., D)`` onto the box ``[lower, upper]`` (each ``(D,)``, ±inf ok).
-
-    ``mode="clamp"`` clamps; ``mode="reflect"`` folds the excess back into the box (a particle
-    0.1 above ``upper`` lands 0.1 below it; far excursions fold repeatedly, period
-    ``2·(upper − lower)``), which keeps diffused particles off the boundary.
-    """
-    if mode not in ("clamp", "reflect"):
-        raise ValueError(f"mode: expected 'clamp' or 'reflect', got {mode!r}")
-    lo = _as_bound(lower, x, "lower", -math.inf)
-    hi = _as_bound(upper, x, "upper", math.inf)
-    if bool((lo > hi).any()):
-        raise ValueError("lower: must not exceed upper")
-    if mode == "clamp":
-        return torch.maximum(torch.minimum(x, hi), lo)
-    flo, fhi = torch.isfinite(lo), torch.isfinite(hi)
-    lo0 = torch.where(flo, lo, torch.zeros_like(lo))
-    hi0 = torch.where(fhi, hi, torch.zeros_like(hi))
-    width = hi0 - lo0
-    safe_w = torch.where(width > 0, width, torch.ones_like(width))
-    t = torch.remainder(x - lo0, 2 * safe_w)
-    both = lo0 + safe_w - (t - safe_w).abs()
-    both = torch.where(width > 0, both, lo0.expand_as(x))
-    only_lo = lo0 + (x - lo0).abs()
-    only_hi = hi0 - (hi0 - x).abs()
-    out = torch.where(flo & fhi, both, torch.where(flo, only_lo, torch.where(fhi, only_hi, x)))
-    return out
 
 
 def weighted_mean(particles: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:

@@ -514,3 +514,56 @@ class AutoregressivePredictor:
             f"AutoregressivePredictor(mode={self.mode!r}, "
             f"rotation_groups={[g.indices for g in self.rotation_groups]})"
         )
+
+
+class PosePredictor(torch.nn.Module):
+    """Next-pose prediction of a tracker from its last estimates (Pons-Moll §4.3).
+
+    With three or more estimates: :func:`predict_ar3` on the last three, the root rotation
+    composed on SO(3) (:func:`skeleton_rotation_groups`), clamped to the joint limits. With two:
+    half a constant-velocity step; with one: that estimate.
+
+    Args:
+        skeleton: the tracking model (limits, root axes).
+        mode: ``"damped"`` (default), ``"constant_acceleration"`` or ``"constant_position"``.
+        damping: ``(λ1, λ2)`` of the damped mode.
+
+    ``forward(history (T, D)) -> (D,)``, chronological history (most recent last).
+    """
+
+    PREDICTOR_MODES = ("damped", "constant_acceleration", "constant_position")
+
+    def __init__(self, skeleton, mode: str = "damped",
+                 damping: Sequence[float] = (0.8, 0.3)) -> None:
+        super().__init__()
+        if mode not in self.PREDICTOR_MODES:
+            raise ValueError(f"mode: expected one of {self.PREDICTOR_MODES}, got {mode!r}")
+        damping = tuple(float(x) for x in damping)
+        if len(damping) != 2:
+            raise ValueError(f"damping: expected two numbers (l1, l2), got {damping!r}")
+        self.mode = mode
+        self.damping = (0.0, 0.0) if mode == "constant_position" else damping
+        self.register_buffer("lower", skeleton.lower.detach().clone())
+        self.register_buffer("upper", skeleton.upper.detach().clone())
+        root = skeleton.joint_names[0]
+        groups = (skeleton_rotation_groups(skeleton, [root])
+                  if len(skeleton.joint_axes[0]) == 3 else [])
+        self._ar = AutoregressivePredictor(
+            "constant_acceleration" if mode == "constant_acceleration" else "damped",
+            damping=self.damping, rotation_groups=groups)
+
+    def forward(self, history: torch.Tensor) -> torch.Tensor:
+        if history.dim() != 2 or history.shape[-1] != self.lower.shape[0]:
+            raise ValueError(f"history: expected shape (T, {self.lower.shape[0]}), got "
+                             f"{tuple(history.shape)}")
+        lo, hi = self.lower.to(history.dtype), self.upper.to(history.dtype)
+        if history.shape[0] >= 3 and self.mode != "constant_position":
+            pred = self._ar(history[-3:].double()).to(history.dtype)
+        elif history.shape[0] == 2 and self.mode != "constant_position":
+            pred = history[-1] + 0.5 * (history[-1] - history[-2])
+        else:
+            pred = history[-1].clone()
+        return torch.maximum(torch.minimum(pred, hi), lo)
+
+    def extra_repr(self) -> str:
+        return f"mode={self.mode!r}, damping={self.damping}"

@@ -15,7 +15,8 @@ import math
 from dataclasses import dataclass
 
 import torch
-from torch import nn
+
+from torchmocap.likelihoods.base import Likelihood
 
 __all__ = [
     "AppearanceLikelihood",
@@ -146,19 +147,38 @@ def appearance_energy(kin, body, pattern: dict, rig, images,
     return (var * seen).sum(-1) / seen.sum(-1).clamp_min(1)
 
 
-class AppearanceLikelihood(nn.Module):
-    """Log-likelihood ``-weight * V_app`` (``lambda_2 = 40`` in Pons-Moll eq. 17)."""
+class AppearanceLikelihood(Likelihood):
+    """Appearance energy ``V_app`` (eq. 17): across-view colour variance of a body-fixed
+    surface pattern.
 
-    def __init__(self, body, rig, weight: float = 40.0, axial: int = 4, around: int = 6):
+    Args:
+        body: the :class:`~torchmocap.body.CapsuleBody` of the subject.
+        rig: the :class:`~torchmocap.cameras.CameraRig` of the colour images.
+        axial, around: surface points per capsule along and around its axis.
+
+    ``requires = ("images",)``; ``prepare(frame)`` converts the colour images once per frame
+    (views flagged in ``frame.view_dropped`` are excluded).
+    """
+
+    requires = ("images",)
+
+    def __init__(self, body, rig, axial: int = 3, around: int = 4):
         super().__init__()
         self.body = body
         self.rig = rig
-        self.weight = float(weight)
-        self.pattern = body_surface_pattern(body, axial, around)
+        self.axial, self.around = int(axial), int(around)
+        self.pattern = body_surface_pattern(body, self.axial, self.around)
 
-    def energy(self, theta: torch.Tensor, images: torch.Tensor, view_valid=None) -> torch.Tensor:
-        kin = self.body.skeleton(theta, check_finite=False)
-        return appearance_energy(kin, self.body, self.pattern, self.rig, images, view_valid)
+    def prepare(self, frame) -> tuple[ColourObservation, torch.Tensor | None]:
+        view_valid = None
+        if getattr(frame, "view_dropped", None) is not None:
+            view_valid = ~frame.view_dropped.bool()
+        return prepare_images(frame.images, self.body.radii.dtype), view_valid
 
-    def forward(self, theta: torch.Tensor, images: torch.Tensor, view_valid=None):
-        return -self.weight * self.energy(theta, images, view_valid)
+    def energy(self, poses, observation) -> torch.Tensor:
+        colours, view_valid = observation
+        return appearance_energy(poses.kinematics, self.body, self.pattern, self.rig, colours,
+                                 view_valid, endpoints=poses.endpoints(self.body))
+
+    def extra_repr(self) -> str:
+        return f"axial={self.axial}, around={self.around}"

@@ -10,9 +10,9 @@ Shapes: ``P`` particles, ``S`` sensors.
 from __future__ import annotations
 
 import torch
-from torch import nn
 
 from torchmocap.geometry import geodesic_angle
+from torchmocap.likelihoods.base import Likelihood
 
 __all__ = ["orientation_energy", "OrientationLikelihood"]
 
@@ -37,22 +37,40 @@ def orientation_energy(bone_rotations: torch.Tensor, offsets: torch.Tensor,
     return (cost * w).sum(-1) / w.sum().clamp_min(1)
 
 
-class OrientationLikelihood(nn.Module):
-    """Log-likelihood ``-weight * V_ori`` for sensors on the named bones (joint frames)."""
+class OrientationLikelihood(Likelihood):
+    """Sensor-orientation energy ``V_ori`` of the tracking IMUs (the "S" of GS and LS).
 
-    def __init__(self, skeleton, bones: list[str], weight: float = 1.0, power: int = 2):
+    Args:
+        manifold: the :class:`~torchmocap.ik.SensorManifold` of the tracking sensors: which bone
+            carries each sensor, and the calibration ``R_SB`` (eq. 8) set when tracking starts.
+        power: 1 (linear in the angle: the paper's GS cost) or 2 (squared).
+
+    ``requires = ("imu",)``; ``prepare(frame)`` reads the tracking sensors' orientations
+    ``frame.imu (S, 4)`` (or ``(S, 3, 3)``) and ``frame.imu_valid (S,)``.
+    """
+
+    requires = ("imu",)
+
+    def __init__(self, manifold, power: int = 2):
         super().__init__()
         if power not in (1, 2):
             raise ValueError(f"power: expected 1 (linear) or 2 (squared), got {power!r}")
+        self.manifold = manifold
         self.power = int(power)
-        self.skeleton = skeleton
-        self.bones = list(bones)
-        self.bone_index = [skeleton.joint_index(b) for b in self.bones]
-        self.weight = float(weight)
 
-    def energy(self, theta, offsets, measured, valid=None):
-        R = self.skeleton(theta, check_finite=False).rotations[..., self.bone_index, :, :]
-        return orientation_energy(R, offsets, measured, valid, self.power)
+    def prepare(self, frame) -> tuple[torch.Tensor, torch.Tensor | None]:
+        from torchmocap.ik.sensor_manifold import sensor_rotations
 
-    def forward(self, theta, offsets, measured, valid=None):
-        return -self.weight * self.energy(theta, offsets, measured, valid)
+        R_ts = sensor_rotations(frame.imu, self.manifold.num_sensors)
+        valid = getattr(frame, "imu_valid", None)
+        return R_ts.to(self.manifold.sensor_to_bone.dtype), valid
+
+    def energy(self, poses, observation) -> torch.Tensor:
+        R_ts, valid = observation
+        m = self.manifold
+        R = poses.kinematics.rotations.index_select(-3, m._bone_index.to(R_ts.device))
+        return orientation_energy(R, m.sensor_to_bone.transpose(-1, -2), R_ts, valid,
+                                  self.power)
+
+    def extra_repr(self) -> str:
+        return f"power={self.power}, sensors={self.manifold.sensor_names}"

@@ -27,7 +27,8 @@ from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
-from torch import nn
+
+from torchmocap.likelihoods.base import Likelihood
 
 __all__ = [
     "SilhouetteObservation",
@@ -263,37 +264,60 @@ def silhouette_energy(endpoints: torch.Tensor, radii: torch.Tensor, rig,
     return (0.5 * (m2i + i2m) * vv).sum(0) / vv.sum().clamp_min(1)
 
 
-class SilhouetteLikelihood(nn.Module):
-    """Log-likelihood ``-weight * V_silh`` of poses given multi-view silhouettes.
+class SilhouetteLikelihood(Likelihood):
+    """Silhouette energy ``V_silh`` (eq. 17) of a capsule body against multi-view masks.
 
     Args:
-        body: a :class:`~torchmocap.body.CapsuleBody` (its skeleton does the FK).
+        body: the :class:`~torchmocap.body.CapsuleBody` of the subject.
         rig: the :class:`~torchmocap.cameras.CameraRig` of the masks.
-        weight: ``lambda_1`` of Pons-Moll eq. 17 (2 in the paper).
-        smooth: differentiable variant (bilinear lookups, sigmoid coverage).
+        smooth: differentiable variant (bilinear lookups of blurred masks, sigmoid coverage),
+            for gradient-based optimisation; the hard variant is faster (for sampling).
+        fg_samples: ``G`` foreground pixels per view for the image -> model term.
+        blur: std (pixels) of the mask blur of the smooth variant (default 1.5 when smooth).
+        axis_samples, across_samples: grid of points inside each projected capsule.
+        tau: width (pixels) of the smooth coverage test.
 
-    ``forward(theta (P, D), obs) -> (P,)`` with ``obs`` from :func:`prepare_silhouettes`.
+    ``requires = ("silhouettes",)``; ``prepare(frame)`` samples the foreground once per frame
+    (views flagged in ``frame.view_dropped`` and empty masks are excluded).
     """
 
-    def __init__(self, body, rig, weight: float = 2.0, smooth: bool = False,
-                 axis_samples: int = 5, across_samples: int = 3, tau: float = 1.5):
+    requires = ("silhouettes",)
+
+    def __init__(self, body, rig, smooth: bool = False, fg_samples: int = 64,
+                 blur: float | None = None, axis_samples: int = 5, across_samples: int = 3,
+                 tau: float = 1.5):
         super().__init__()
+        if not isinstance(fg_samples, int) or isinstance(fg_samples, bool) or fg_samples < 1:
+            raise ValueError(f"fg_samples: expected an int >= 1, got {fg_samples!r}")
+        if axis_samples < 1 or across_samples < 1:
+            raise ValueError("axis_samples, across_samples: expected ints >= 1")
+        if not tau > 0:
+            raise ValueError(f"tau: expected a value > 0, got {tau!r}")
         self.body = body
         self.rig = rig
-        self.weight = float(weight)
-        self.smooth = smooth
-        self.axis_samples = axis_samples
-        self.across_samples = across_samples
-        self.tau = tau
+        self.smooth = bool(smooth)
+        self.fg_samples = fg_samples
+        self.blur = (1.5 if self.smooth else 0.0) if blur is None else float(blur)
+        if self.blur < 0:
+            raise ValueError(f"blur: expected a value >= 0, got {blur!r}")
+        self.axis_samples = int(axis_samples)
+        self.across_samples = int(across_samples)
+        self.tau = float(tau)
 
-    def energy(self, theta: torch.Tensor, obs: SilhouetteObservation) -> torch.Tensor:
-        kin = self.body.skeleton(theta, check_finite=False)
-        ep = self.body.endpoints(kin)
-        return silhouette_energy(ep, self.body.radii, self.rig, obs, self.smooth,
-                                 self.axis_samples, self.across_samples, self.tau)
+    def prepare(self, frame) -> SilhouetteObservation:
+        view_valid = None
+        if getattr(frame, "view_dropped", None) is not None:
+            view_valid = ~frame.view_dropped.bool()
+        return prepare_silhouettes(frame.silhouettes, self.fg_samples, blur=self.blur,
+                                   view_valid=view_valid, dtype=self.body.radii.dtype)
 
-    def forward(self, theta: torch.Tensor, obs: SilhouetteObservation) -> torch.Tensor:
-        return -self.weight * self.energy(theta, obs)
+    def energy(self, poses, observation: SilhouetteObservation) -> torch.Tensor:
+        return silhouette_energy(poses.endpoints(self.body), self.body.radii, self.rig,
+                                 observation, self.smooth, self.axis_samples,
+                                 self.across_samples, self.tau)
+
+    def extra_repr(self) -> str:
+        return f"smooth={self.smooth}, fg_samples={self.fg_samples}, blur={self.blur}"
 
 
 def render_capsule_silhouettes(body, rig, theta: torch.Tensor, chunk: int = 20000

@@ -1,4 +1,5 @@
-"""torchmocap.proposals: ``sample(context, num, generator) -> Proposed`` samplers of poses."""
+"""torchmocap.proposals: ``sample(context, num, generator) -> Proposed`` samplers of poses, and
+the sensor-noise models of manifold sampling."""
 
 from torchmocap.proposals.base import (
     GaussianDiffusionProposal,
@@ -7,18 +8,31 @@ from torchmocap.proposals.base import (
     Proposed,
     select_ancestors,
 )
-from torchmocap.proposals.manifold import NOISE_MODELS, ManifoldProposal, perturb_sensors
+from torchmocap.proposals.bounds import BOUNDARIES, bound_particles
+from torchmocap.proposals.manifold import ManifoldProposal
+from torchmocap.proposals.noise import (
+    NoSensorNoise,
+    PassiveGaussianNoise,
+    SensorNoise,
+    TangentGaussianNoise,
+    VonMisesFisherNoise,
+)
 from torchmocap.proposals.rejection import RejectionProposal, SensorAngleCriterion
 
 __all__ = [
-    "NOISE_MODELS",
+    "BOUNDARIES",
     "GaussianDiffusionProposal",
     "ManifoldProposal",
+    "NoSensorNoise",
+    "PassiveGaussianNoise",
     "Proposal",
     "ProposalContext",
     "Proposed",
     "RejectionProposal",
     "SensorAngleCriterion",
-    "perturb_sensors",
+    "SensorNoise",
+    "TangentGaussianNoise",
+    "VonMisesFisherNoise",
+    "bound_particles",
     "select_ancestors",
 ]

@@ -7,9 +7,17 @@ returns a :class:`Proposed` with the particles, ``log_q`` when the proposal dens
 slots could not be filled as asked (e.g. a capped rejection sampler), and a ``stats`` dict
 (acceptance rates, tries, residuals, timings).
 
+Proposals are also the mutation kernels of annealing: an inference algorithm may set
+``context.std`` (a per-coordinate std replacing the proposal's own) or ``context.scale`` (a factor
+on it) in the proposal's own **coordinates** — ``proposal.coordinates(theta)``: the full pose for
+:class:`GaussianDiffusionProposal`, the active coordinates for a manifold proposal — so an
+annealer can measure the particle spread in the space the proposal perturbs.
+
+``requires`` names the observation modalities a proposal reads (e.g. ``("imu",)``).
+
 :class:`GaussianDiffusionProposal` is the simplest concrete proposal — per-DoF Gaussian
-diffusion of the previous particles in the full pose space — used as the inner sampler of the
-paper's rejection-sampling baseline (Pons-Moll et al. 2010, Fig. 9b).
+diffusion of the previous particles in the full pose space (the G/GS trackers' mutation, and
+the inner sampler of the rejection-sampling baseline of Pons-Moll et al. 2010, Fig. 9b).
 """
 
 from __future__ import annotations
@@ -21,6 +29,8 @@ from typing import Any
 
 import torch
 from torch import nn
+
+from torchmocap.proposals.bounds import BOUNDARIES, bound_particles
 
 __all__ = [
     "Proposal",
@@ -37,17 +47,27 @@ class ProposalContext:
     """What a proposal may condition on.
 
     Attributes:
-        previous: ``(P0, D)`` previous particles or ``(D,)`` previous estimate.
+        previous: ``(P0, D)`` previous particles or ``(D,)`` previous estimate / prediction.
         log_weights: optional ``(P0,)`` log weights of ``previous`` (ancestors are drawn from
             them when ``P0 != num``; uniform otherwise).
-        sensors: optional ``(S, 3, 3)`` / ``(S, 4)`` sensor orientations of this frame
+        sensors: optional ``(S, 3, 3)`` / ``(S, 4)`` tracking-sensor orientations of this frame
             (or per particle ``(P, S, ...)``).
-        extras: anything else a proposal needs (observations of other modalities).
+        sensor_valid: optional ``(S,)`` bool, False for dropped sensor samples.
+        frame: this frame's observations (a :class:`~torchmocap.data.Frame` restricted to what
+            the tracker may see), for data-driven proposals.
+        std: optional per-coordinate std ``(d,)`` replacing the proposal's own diffusion std
+            (set per annealing layer).
+        scale: factor on the proposal's own std (ignored when ``std`` is given).
+        extras: anything else a proposal needs.
     """
 
     previous: torch.Tensor
     log_weights: torch.Tensor | None = None
     sensors: torch.Tensor | None = None
+    sensor_valid: torch.Tensor | None = None
+    frame: Any = None
+    std: torch.Tensor | None = None
+    scale: float = 1.0
     extras: dict[str, Any] = field(default_factory=dict)
 
 
@@ -72,7 +92,13 @@ class Proposed:
 
 
 class Proposal(nn.Module):
-    """Base class: subclasses implement :meth:`sample`; ``forward`` calls it."""
+    """Base class: subclasses implement :meth:`sample`; ``forward`` calls it.
+
+    Override :meth:`coordinates` (and :attr:`coordinate_std`) when the proposal perturbs
+    something other than the full pose vector, and set ``requires`` to the modalities it reads.
+    """
+
+    requires: tuple[str, ...] = ()
 
     def sample(
         self, context: ProposalContext, num: int, generator: torch.Generator | None = None
@@ -84,9 +110,18 @@ class Proposal(nn.Module):
     ) -> Proposed:
         return self.sample(context, num, generator)
 
+    def coordinates(self, theta: torch.Tensor) -> torch.Tensor:
+        """The coordinates ``(..., d)`` this proposal perturbs (default: the pose itself)."""
+        return theta
+
+    @property
+    def coordinate_std(self) -> torch.Tensor | None:
+        """The proposal's own diffusion std in :meth:`coordinates` units ``(d,)``, if any."""
+        return None
+
 
 def _check_num(num: int) -> None:
-    if not isinstance(num, int) or num < 1:
+    if not isinstance(num, int) or isinstance(num, bool) or num < 1:
         raise ValueError(f"num: expected an int >= 1, got {num!r}")
 
 
@@ -131,45 +166,99 @@ def as_std(std: float | Sequence[float] | torch.Tensor, n: int, name: str) -> to
     return t
 
 
+def context_std(context: ProposalContext, own: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """The std to use for a draw: ``context.std`` when set, else ``own * context.scale``, as a
+    ``(d,)`` or ``(P, d)`` tensor in ``like``'s dtype/device (typed errors on a bad shape)."""
+    d = own.shape[-1]
+    if context.std is not None:
+        s = torch.as_tensor(context.std, dtype=like.dtype, device=like.device)
+        if s.shape[-1:] != (d,) or s.dim() > 2:
+            raise ValueError(f"context.std: expected ({d},) or (P, {d}), got {tuple(s.shape)}")
+        return s
+    scale = float(context.scale)
+    if not (math.isfinite(scale) and scale >= 0):
+        raise ValueError(f"context.scale: expected a finite number >= 0, got {context.scale!r}")
+    return own.to(dtype=like.dtype, device=like.device) * scale
+
+
 class GaussianDiffusionProposal(Proposal):
-    """``theta = ancestor + N(0, diag(std^2))`` in the full pose space (optionally clamped).
+    """``theta = ancestor + N(0, diag(std^2))`` in the full pose space, projected onto limits.
 
     Args:
         std: scalar or ``(D,)`` per-DoF standard deviation (radians; metres for translations).
-        num_dofs: ``D``.
-        lower, upper: optional ``(D,)`` limits; samples are clamped into them when given (then
-            ``log_q`` is not reported).
+        num_dofs: ``D`` (needed when ``std`` is a scalar).
+        lower, upper: optional ``(D,)`` limits.
+        boundary: how samples outside the limits are brought back: ``"clamp"``, ``"reflect"``
+            or ``"none"``. ``log_q`` (the Gaussian density around the ancestor) is reported only
+            without limits.
+
+    :meth:`from_skeleton` builds it from a skeleton (rotation and translation stds, the
+    skeleton's limits) — what the ``proposal/gaussian_diffusion`` config does.
     """
 
     def __init__(
         self,
         std: float | Sequence[float] | torch.Tensor,
-        num_dofs: int,
+        num_dofs: int | None = None,
         lower: torch.Tensor | None = None,
         upper: torch.Tensor | None = None,
+        boundary: str = "clamp",
     ) -> None:
         super().__init__()
-        self.num_dofs = num_dofs
-        self.register_buffer("std", as_std(std, num_dofs, "std"))
+        if num_dofs is None:
+            num_dofs = int(torch.as_tensor(std).numel())
+        if boundary not in BOUNDARIES:
+            raise ValueError(f"boundary: expected one of {BOUNDARIES}, got {boundary!r}")
+        self.num_dofs = int(num_dofs)
+        self.boundary = boundary
+        self.register_buffer("std", as_std(std, self.num_dofs, "std"))
         self.register_buffer("lower", None if lower is None else lower.detach().float().clone())
         self.register_buffer("upper", None if upper is None else upper.detach().float().clone())
+
+    @classmethod
+    def from_skeleton(cls, skeleton, rotation_std_deg: float = 3.0, translation_std: float = 0.02,
+                      limits: bool = True, boundary: str = "clamp") -> GaussianDiffusionProposal:
+        """Per-DoF std ``rotation_std_deg`` (degrees) on rotations and ``translation_std``
+        (metres) on translations of ``skeleton``; its joint limits when ``limits``."""
+        for name, v in (("rotation_std_deg", rotation_std_deg),
+                        ("translation_std", translation_std)):
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name}: expected a finite number >= 0, got {v!r}")
+        std = skeleton_std(skeleton, rotation_std_deg, translation_std)
+        return cls(std, skeleton.num_dofs,
+                   skeleton.lower if limits else None, skeleton.upper if limits else None,
+                   boundary)
+
+    @property
+    def coordinate_std(self) -> torch.Tensor:
+        return self.std
 
     def sample(
         self, context: ProposalContext, num: int, generator: torch.Generator | None = None
     ) -> Proposed:
         base = select_ancestors(context, num, self.num_dofs, generator)
-        std = self.std.to(base.dtype)
+        std = context_std(context, self.std, base)
         eps = torch.randn(num, self.num_dofs, generator=generator, dtype=base.dtype,
                           device=base.device)
         theta = base + eps * std
         log_q = None
-        if self.lower is not None or self.upper is not None:
+        if (self.lower is not None or self.upper is not None) and self.boundary != "none":
             lo = self.lower.to(base.dtype) if self.lower is not None else None
             hi = self.upper.to(base.dtype) if self.upper is not None else None
-            theta = torch.clamp(theta, lo, hi)
-        else:
+            theta = bound_particles(theta, lo, hi, self.boundary)
+        elif std.dim() == 1:
             pos = std > 0
             z = eps[:, pos]
             log_q = (-0.5 * (z * z).sum(-1) - torch.log(std[pos]).sum()
                      - 0.5 * math.log(2 * math.pi) * int(pos.sum()))
         return Proposed(particles=theta, log_q=log_q)
+
+    def extra_repr(self) -> str:
+        return f"num_dofs={self.num_dofs}, boundary={self.boundary!r}"
+
+
+def skeleton_std(skeleton, rotation_std_deg: float, translation_std: float) -> torch.Tensor:
+    """``(D,)`` per-DoF std of ``skeleton``: radians on rotations, metres on translations."""
+    std = torch.full((skeleton.num_dofs,), math.radians(rotation_std_deg), dtype=torch.float32)
+    std[list(skeleton.translation_dofs)] = float(translation_std)
+    return std

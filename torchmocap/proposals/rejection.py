@@ -33,11 +33,14 @@ ErrorFn = Callable[[torch.Tensor, ProposalContext], torch.Tensor]
 
 class SensorAngleCriterion:
     """Per-sensor angular error (radians) ``(P, S)`` between the bone orientations of poses
-    ``theta (P, D)`` and the sensor-bone orientations ``R_TS R_SB`` of ``context.sensors``.
+    ``theta (P, D)`` and the sensor-bone orientations ``R_TS R_SB`` of ``context.sensors``
+    (the calibrated tracking sensors of ``manifold``)."""
 
-    ``sensors`` may be restricted to a subset (``indices``) of the manifold's sensors."""
+    requires = ("imu",)
 
     def __init__(self, manifold: SensorManifold) -> None:
+        if not isinstance(manifold, SensorManifold):
+            raise TypeError(f"manifold: expected a SensorManifold, got {type(manifold).__name__}")
         self.manifold = manifold
 
     def __call__(self, theta: torch.Tensor, context: ProposalContext) -> torch.Tensor:
@@ -56,8 +59,9 @@ class RejectionProposal(Proposal):
 
     Args:
         base: inner proposal (e.g. :class:`~torchmocap.proposals.base.GaussianDiffusionProposal`).
-        error_fn: ``(theta (K, D), context) -> (K, S)`` or ``(K,)`` errors in radians, or a
-            :class:`~torchmocap.ik.SensorManifold` (then :class:`SensorAngleCriterion`).
+        criterion: ``(theta (K, D), context) -> (K, S)`` or ``(K,)`` errors in radians (e.g.
+            :class:`SensorAngleCriterion`), or a :class:`~torchmocap.ik.SensorManifold` (then
+            :class:`SensorAngleCriterion` of it).
         threshold_deg: acceptance threshold per sensor (degrees).
         max_tries: cap on the total number of candidates per call.
         max_rounds: cap on the number of batches per call.
@@ -68,7 +72,7 @@ class RejectionProposal(Proposal):
     def __init__(
         self,
         base: Proposal,
-        error_fn: ErrorFn | SensorManifold,
+        criterion: ErrorFn | SensorManifold,
         threshold_deg: float = 10.0,
         max_tries: int = 1_000_000,
         max_rounds: int = 10_000,
@@ -78,17 +82,35 @@ class RejectionProposal(Proposal):
         super().__init__()
         if not threshold_deg > 0:
             raise ValueError(f"threshold_deg: expected a value > 0, got {threshold_deg}")
-        if max_tries < 1 or max_rounds < 1 or batch_size < 1:
-            raise ValueError("max_tries, max_rounds, batch_size: expected values >= 1")
+        for name, v in (("max_tries", max_tries), ("max_rounds", max_rounds),
+                        ("batch_size", batch_size)):
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name}: expected an int >= 1, got {v!r}")
+        if not isinstance(base, Proposal):
+            raise TypeError(f"base: expected a Proposal, got {type(base).__name__}")
         self.base = base
-        self.error_fn = (SensorAngleCriterion(error_fn) if isinstance(error_fn, SensorManifold)
-                         else error_fn)
+        self.error_fn = (SensorAngleCriterion(criterion) if isinstance(criterion, SensorManifold)
+                         else criterion)
+        if not callable(self.error_fn):
+            raise TypeError(f"criterion: expected a callable, got {type(criterion).__name__}")
         self.threshold = math.radians(threshold_deg)
         self.threshold_deg = threshold_deg
         self.max_tries = int(max_tries)
         self.max_rounds = int(max_rounds)
         self.max_seconds = max_seconds
         self.batch_size = int(batch_size)
+
+    @property
+    def requires(self) -> tuple[str, ...]:  # type: ignore[override]
+        extra = tuple(getattr(self.error_fn, "requires", ()))
+        return tuple(dict.fromkeys(tuple(self.base.requires) + extra))
+
+    def coordinates(self, theta: torch.Tensor) -> torch.Tensor:
+        return self.base.coordinates(theta)
+
+    @property
+    def coordinate_std(self) -> torch.Tensor | None:
+        return self.base.coordinate_std
 
     def sample(
         self, context: ProposalContext, num: int, generator: torch.Generator | None = None
@@ -165,3 +187,6 @@ class RejectionProposal(Proposal):
             "stopped": stopped,
         }
         return Proposed(particles=out, valid=valid, stats=stats)
+
+    def extra_repr(self) -> str:
+        return f"threshold_deg={self.threshold_deg}, max_tries={self.max_tries}"

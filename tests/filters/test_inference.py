@@ -1,0 +1,199 @@
+"""Inference modules (annealing with a proposal as mutation kernel, local descent), diffusion
+rules and estimators: their contracts, closed forms and a quadratic that a broken one misses."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchmocap.filters import (
+    AnnealedInference,
+    BestParticleEstimator,
+    LocalInference,
+    ManifoldMeanEstimator,
+    ShrinkingDiffusion,
+    SpreadDiffusion,
+    WeightedMeanEstimator,
+)
+from torchmocap.filters.annealing import ESSSchedule
+from torchmocap.filters.resampling import SystematicResampler
+from torchmocap.ik import SensorManifold
+from torchmocap.proposals import GaussianDiffusionProposal, ProposalContext, Proposed
+from torchmocap.skeleton import human31
+
+F64 = torch.float64
+
+
+class RecordingProposal(GaussianDiffusionProposal):
+    """A Gaussian diffusion that records the std it was asked to use per call."""
+
+    def __init__(self, *a, **k):
+        super().__init__(*a, **k)
+        self.calls = []
+
+    def sample(self, context, num, generator=None):
+        self.calls.append((None if context.std is None else context.std.clone(), context.scale,
+                           tuple(context.previous.shape)))
+        out = super().sample(context, num, generator)
+        return Proposed(out.particles, stats={"tries": num, "accepted": num // 2,
+                                              "filled": 0.5})
+
+
+def _quadratic(target):
+    def V(x):
+        return ((x - target) ** 2).sum(-1)
+
+    return V
+
+
+def test_annealed_inference_finds_the_minimum_of_a_quadratic():
+    target = torch.tensor([0.4, -0.3, 0.2, 0.1], dtype=F64)
+    prop = GaussianDiffusionProposal(torch.full((4,), 0.3))
+    inf = AnnealedInference(layers=15)
+    errs = []
+    for seed in range(3):
+        res = inf(_quadratic(target), prop, WeightedMeanEstimator(),
+                  ProposalContext(torch.zeros(4, dtype=F64)), 300,
+                  torch.Generator().manual_seed(seed))
+        errs.append(float((res.estimate - target).norm()))
+        assert res.particles.shape == (300, 4) and res.log_weights.shape == (300,)
+        assert len(res.info["beta"]) == 15 and len(res.info["ess"]) == 15
+        assert torch.exp(res.log_weights).sum().item() == pytest.approx(1.0)
+    start = float(target.norm())
+    assert max(errs) < 0.1 * start, errs  # one layer (no annealing) stays at ~start
+
+
+def test_annealed_inference_hands_layer_stds_to_the_proposal():
+    prop = RecordingProposal(torch.full((3,), 0.2))
+    inf = AnnealedInference(layers=5, diffusion=SpreadDiffusion(rho=0.5, decay=0.5))
+    inf(_quadratic(torch.zeros(3)), prop, WeightedMeanEstimator(),
+        ProposalContext(torch.ones(3)), 100, torch.Generator().manual_seed(0))
+    assert len(prop.calls) == 5  # layer 0 + 4 mutations
+    assert prop.calls[0][0] is None and prop.calls[0][2] == (3,)  # own std around the start
+    assert all(c[0] is not None and c[0].shape == (3,) and c[2] == (100, 3)
+               for c in prop.calls[1:])
+    # diffusion cools: the std handed over shrinks across layers
+    stds = [float(c[0].mean()) for c in prop.calls[1:]]
+    assert stds[-1] < 0.5 * stds[0]
+    prop2 = RecordingProposal(torch.full((3,), 0.2))
+    AnnealedInference(layers=4, diffusion=ShrinkingDiffusion(0.5))(
+        _quadratic(torch.zeros(3)), prop2, WeightedMeanEstimator(),
+        ProposalContext(torch.ones(3)), 50, torch.Generator().manual_seed(0))
+    assert [c[1] for c in prop2.calls[1:]] == [1.0, 0.5, 0.25]
+
+
+def test_annealed_inference_summarises_proposal_statistics():
+    prop = RecordingProposal(torch.full((2,), 0.1))
+    res = AnnealedInference(layers=3)(_quadratic(torch.zeros(2)), prop,
+                                      WeightedMeanEstimator(), ProposalContext(torch.ones(2)),
+                                      40, torch.Generator().manual_seed(0))
+    st = res.info["proposal"]
+    assert st["tries"] == 120 and st["accepted"] == 60
+    assert st["acceptance_rate"] == pytest.approx(0.5) and st["filled_min"] == 0.5
+
+
+def test_rounds_keep_the_best_and_shrink_the_spread():
+    target = torch.tensor([2.0, -1.0], dtype=F64)
+    prop = RecordingProposal(torch.full((2,), 1.0))
+    res = AnnealedInference(layers=4, rounds=3, round_scale=0.5)(
+        _quadratic(target), prop, WeightedMeanEstimator(), ProposalContext(torch.zeros(2,
+                                                                           dtype=F64)),
+        100, torch.Generator().manual_seed(1))
+    starts = [c for c in prop.calls if c[0] is None and c[2] == (2,)]
+    assert [c[1] for c in starts] == [1.0, 0.5, 0.25]
+    assert res.info["rounds"] == 3 and len(res.info["beta"]) == 12
+    assert float((res.estimate - target).norm()) < 0.3
+
+
+def test_spread_diffusion_closed_form():
+    x = torch.tensor([[0.0, 1.0], [2.0, 1.0], [4.0, 1.0]], dtype=F64)
+    d = SpreadDiffusion(rho=0.5, decay=0.5, delta=1e-8)
+    std = d(x, 2, 15, None)["std"]
+    assert std.tolist() == pytest.approx([math.sqrt(0.5 * 0.25 * 4.0 + 1e-8), 1e-4])
+    default = SpreadDiffusion()(x, 13, 15, None)["std"]  # decay 0.1^(1/13): 10x over 13 steps
+    assert default[0].item() == pytest.approx(math.sqrt(0.5 * 0.1 * 4.0 + 1e-8))
+    with pytest.raises(ValueError, match="rho"):
+        SpreadDiffusion(rho=0)
+    with pytest.raises(ValueError, match="decay"):
+        ShrinkingDiffusion(1.5)
+
+
+def test_inference_settings_are_objects_or_names():
+    inf = AnnealedInference(layers=3, schedule=ESSSchedule(0.3), selection=SystematicResampler())
+    assert "ESSSchedule(alpha=0.3" in repr(inf) and "Systematic" in repr(inf)
+    with pytest.raises(ValueError, match="layers"):
+        AnnealedInference(layers=0)
+    with pytest.raises(ValueError, match="schedule"):
+        AnnealedInference(schedule="nope")
+    with pytest.raises(ValueError, match="round_scale"):
+        AnnealedInference(round_scale=0)
+
+
+def test_local_inference_descends_and_respects_limits():
+    sk = human31().double()
+    target = sk.zero_pose(dtype=F64)
+    target[sk.dof_index("l_elbow_flex")] = 0.7
+    target[sk.dof_index("r_knee_flex")] = 3.0  # beyond the 135 deg limit
+
+    def V(x):
+        return ((x - target) ** 2).sum(-1)
+
+    inf = LocalInference(sk, method="lbfgs", iterations=30)
+    res = inf(V, GaussianDiffusionProposal(torch.full((31,), 0.1)), WeightedMeanEstimator(),
+              ProposalContext(sk.zero_pose(dtype=F64)), 1)
+    assert res.estimate[sk.dof_index("l_elbow_flex")].item() == pytest.approx(0.7, abs=1e-6)
+    assert res.estimate[sk.dof_index("r_knee_flex")].item() == pytest.approx(
+        float(sk.upper[sk.dof_index("r_knee_flex")]), abs=1e-6)
+    assert res.info["final_energy"] < res.info["start_energy"]
+    multi = LocalInference(sk, method="adam", iterations=5, lr=0.05, starts=4)(
+        V, GaussianDiffusionProposal(torch.full((31,), 0.1)), WeightedMeanEstimator(),
+        ProposalContext(sk.zero_pose(dtype=F64)), 1, torch.Generator().manual_seed(0))
+    assert multi.particles.shape == (4, 31)
+    with pytest.raises(ValueError, match="method"):
+        LocalInference(sk, method="sgd")
+    with pytest.raises(ValueError, match="starts"):
+        LocalInference(sk, starts=0)
+
+
+class TestEstimators:
+    def test_weighted_mean_and_best(self):
+        x = torch.tensor([[0.0, 1.0], [2.0, 3.0]])
+        w = torch.tensor([0.25, 0.75])
+        assert WeightedMeanEstimator()(x, w).tolist() == [1.5, 2.5]
+        assert BestParticleEstimator()(x, w).tolist() == [2.0, 3.0]
+        with pytest.raises(ValueError, match="weights"):
+            WeightedMeanEstimator()(x, torch.ones(3))
+
+    def test_root_rotation_mean_on_so3(self):
+        """Headings of +179 and -179 deg average to 180, not to 0."""
+        sk = human31()
+        x = sk.zero_pose((2,))
+        rz = sk.dof_index("pelvis_rz")
+        x[0, rz], x[1, rz] = math.radians(179), math.radians(-179)
+        w = torch.tensor([0.5, 0.5])
+        est = WeightedMeanEstimator(sk, rotation_groups=True)(x, w)
+        assert abs(abs(est[rz].item()) - math.pi) < 1e-4
+        assert abs(WeightedMeanEstimator()(x, w)[rz].item()) < 1e-6  # the naive mean
+        with pytest.raises(ValueError, match="skeleton"):
+            WeightedMeanEstimator(rotation_groups=True)
+
+    def test_manifold_mean_lies_on_the_manifold(self):
+        sk = human31().double()
+        m = SensorManifold(sk).double()
+        g = torch.Generator().manual_seed(0)
+        th = sk.zero_pose(dtype=F64) + 0.1 * torch.randn(31, generator=g, dtype=F64)
+        th = sk.clamp(th)
+        sensors = m.sensor_orientations(th)
+        parts = m.inverse(m(th) + 0.05 * torch.randn(50, m.num_active, generator=g,
+                                                    dtype=F64), sensors).theta
+        w = torch.softmax(torch.randn(50, generator=g, dtype=F64), 0)
+        est = ManifoldMeanEstimator(m)(parts, w, ProposalContext(th, sensors=sensors))
+        assert torch.allclose(m(est), (w[:, None] * m(parts)).sum(0))
+        from torchmocap.geometry import geodesic_angle
+
+        err = geodesic_angle(m.bone_orientations(est), m.bone_orientations(th))
+        assert float(err.max()) < 1e-9  # the sensors are met exactly
+        with pytest.raises(ValueError, match="sensors"):
+            ManifoldMeanEstimator(m)(parts, w, ProposalContext(th))

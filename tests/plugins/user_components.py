@@ -1,0 +1,39 @@
+"""A user's own components, outside torchmocap: they enter trackers through YAML ``_target_``.
+
+Used by tests/test_assembly.py (the package is put on ``sys.path`` / ``PYTHONPATH``).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from torchmocap.likelihoods import Likelihood
+from torchmocap.proposals import GaussianDiffusionProposal
+
+
+class UprightLikelihood(Likelihood):
+    """Energy: how far the head is from straight above the pelvis (metres, horizontal).
+
+    Takes the runtime ``skeleton`` by name (injected by ``torchmocap.assembly.build``)."""
+
+    requires = ("silhouettes",)
+
+    def __init__(self, skeleton, head: str = "head_top", scale: float = 1.0):
+        super().__init__()
+        self.head = skeleton.joint_index(head)
+        self.scale = float(scale)
+        self.calls = 0
+
+    def energy(self, poses, observation):
+        self.calls += 1
+        p = poses.kinematics.positions
+        return self.scale * (p[:, self.head, :2] - p[:, 0, :2]).norm(dim=-1)
+
+
+class HalfStepProposal(GaussianDiffusionProposal):
+    """A user's proposal: Gaussian diffusion at half the configured std."""
+
+    def __init__(self, skeleton, rotation_std_deg: float = 3.0):
+        std = torch.full((skeleton.num_dofs,), 0.5 * rotation_std_deg * 3.141592653589793 / 180)
+        std[list(skeleton.translation_dofs)] = 0.01
+        super().__init__(std, skeleton.num_dofs, skeleton.lower, skeleton.upper)

@@ -1,0 +1,224 @@
+"""Assembling components from configs: runtime dependencies, ``build`` and the tracker presets.
+
+Every component config has a ``_target_`` (a class, function or classmethod, from torchmocap or
+any importable package). :func:`build` instantiates a config tree bottom-up with
+``hydra.utils.instantiate`` — children first, then their parent with the built children — and
+passes the **runtime dependencies** a constructor asks for by parameter name:
+
+=============  =================================================================================
+``skeleton``   the tracking :class:`~torchmocap.skeleton.Skeleton` (the subject's model)
+``body``       its :class:`~torchmocap.body.CapsuleBody`
+``rig``        the :class:`~torchmocap.cameras.CameraRig` of the sequence's views
+``manifold``   the :class:`~torchmocap.ik.SensorManifold` of the tracking IMUs (None without)
+=============  =================================================================================
+
+So a user's class enters a tracker through YAML alone::
+
+    # my_term.yaml
+    _target_: mypkg.likelihoods.MyTerm     # def __init__(self, body, rig, width=2.0)
+    width: 3.0
+
+and ``tracker.likelihood.terms.mine`` of that config builds ``MyTerm(body=<runtime body>,
+rig=<runtime rig>, width=3.0)``. Dependencies are never looked up globally.
+
+:func:`tracker_config` composes a packaged preset (``conf/tracker/<name>.yaml``) with Hydra's
+compose API — the same config ``torchmocap-track tracker=<name> <overrides>`` resolves — and
+:func:`build_tracker` builds it for a sequence.
+
+Example:
+    >>> from torchmocap.assembly import tracker_config
+    >>> cfg = tracker_config("p", ["noise@tracker.proposal.noise=gaussian"])
+    >>> cfg.proposal.noise._target_
+    'torchmocap.proposals.PassiveGaussianNoise'
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+__all__ = [
+    "DEPENDENCIES",
+    "ComponentError",
+    "Runtime",
+    "build",
+    "build_tracker",
+    "tracker_config",
+]
+
+#: Names of the runtime dependencies :func:`build` passes to constructors that accept them.
+DEPENDENCIES = ("skeleton", "body", "rig", "manifold")
+
+
+class ComponentError(ValueError):
+    """A component config cannot be built (names the config path)."""
+
+
+@dataclass
+class Runtime:
+    """The runtime dependencies of components (see the module docstring).
+
+    Attributes:
+        skeleton, body, rig, manifold: see :data:`DEPENDENCIES`.
+        sensors: ``{sensor: bone}`` of the tracking IMUs.
+    """
+
+    skeleton: Any
+    body: Any = None
+    rig: Any = None
+    manifold: Any = None
+    sensors: dict[str, str] = field(default_factory=dict)
+
+    @classmethod
+    def from_sequence(cls, sequence, skeleton=None, dtype: torch.dtype = torch.float32
+                      ) -> Runtime:
+        """Dependencies for tracking ``sequence``: the subject's skeleton (``skeleton``, else
+        the ground truth's, else ``sequence.meta["subject_skeleton"]``), its capsule body, the
+        rig and the sensor manifold of the tracking IMUs."""
+        from torchmocap.body import CapsuleBody
+        from torchmocap.ik import SensorManifold
+        from torchmocap.skeleton import Skeleton
+
+        if skeleton is None:
+            if sequence.ground_truth is not None:
+                skeleton = sequence.ground_truth.build_skeleton()
+            elif isinstance(sequence.meta, dict) and "subject_skeleton" in sequence.meta:
+                skeleton = Skeleton.from_dict(sequence.meta["subject_skeleton"])
+            else:
+                raise ValueError("skeleton: required when the sequence has neither ground truth "
+                                 "nor meta['subject_skeleton']")
+        skeleton = skeleton.to(dtype)
+        sensors: dict[str, str] = {}
+        if sequence.imu is not None:
+            sensors = {n: b for n, b, t in zip(sequence.imu.names, sequence.imu.bones,
+                                                sequence.imu.tracking.tolist()) if t}
+        manifold = SensorManifold(skeleton, sensors) if sensors else None
+        rig = None if sequence.rig is None else sequence.rig.to(dtype)
+        return cls(skeleton=skeleton, body=CapsuleBody(skeleton), rig=rig, manifold=manifold,
+                   sensors=sensors)
+
+
+def _accepts(fn, name: str) -> tuple[bool, bool]:
+    """(accepts a keyword ``name``, it is required) for a callable."""
+    try:
+        sig = inspect.signature(fn)
+    except (TypeError, ValueError):
+        return False, False
+    p = sig.parameters.get(name)
+    if p is None or p.kind in (p.POSITIONAL_ONLY, p.VAR_POSITIONAL):
+        return False, False
+    return True, p.default is inspect.Parameter.empty
+
+
+def _is_component(node) -> bool:
+    from omegaconf import DictConfig
+
+    return isinstance(node, (Mapping, DictConfig)) and "_target_" in node
+
+
+def _build_value(v, runtime, path):
+    from omegaconf import DictConfig, ListConfig, OmegaConf
+
+    if _is_component(v):
+        return build(v, runtime, _path=path)
+    if isinstance(v, (Mapping, DictConfig)):
+        return {k: _build_value(x, runtime, f"{path}.{k}") for k, x in v.items()}
+    if isinstance(v, (ListConfig, list, tuple)):
+        return [_build_value(x, runtime, f"{path}[{i}]") for i, x in enumerate(v)]
+    if OmegaConf.is_config(v):
+        return OmegaConf.to_container(v, resolve=True)
+    return v
+
+
+def build(node, runtime: Runtime | None = None, *, _path: str = "", **kwargs):
+    """Instantiate a component config tree (``_target_`` nodes, bottom-up).
+
+    Args:
+        node: a ``DictConfig``/dict with ``_target_`` (children with ``_target_`` are built
+            first; ``_partial_: true`` gives a ``functools.partial``).
+        runtime: the :class:`Runtime` whose dependencies are passed to constructors asking for
+            them by name (:data:`DEPENDENCIES`), unless the config sets them.
+        kwargs: extra arguments of the top-level component (e.g. ``seed``).
+    Raises:
+        ComponentError: an unknown ``_target_``, a missing runtime dependency, or a constructor
+            that rejected its arguments — naming the config path.
+    """
+    from hydra.utils import get_object, instantiate
+    from omegaconf import DictConfig, OmegaConf
+
+    where = _path or "<root>"
+    if not _is_component(node):
+        raise ComponentError(f"{where}: expected a config with a _target_, got "
+                             f"{type(node).__name__}")
+    if isinstance(node, DictConfig):
+        node = OmegaConf.to_container(node, resolve=True)
+    target = node["_target_"]
+    try:
+        fn = get_object(target)
+    except Exception as e:
+        raise ComponentError(f"{where}: cannot import _target_ {target!r} "
+                             f"({type(e).__name__}: {e})") from None
+    own = {k: v for k, v in node.items() if k.startswith("_")}
+    children = {k: _build_value(v, runtime, f"{_path}.{k}" if _path else k)
+                for k, v in node.items() if not k.startswith("_")}
+    deps = {}
+    for name in DEPENDENCIES:
+        if name in children or name in kwargs:
+            continue
+        ok, required = _accepts(fn, name)
+        if not ok:
+            continue
+        value = None if runtime is None else getattr(runtime, name)
+        if value is None and required:
+            what = ("tracking IMUs (a sensor manifold)" if name == "manifold"
+                    else f"a runtime {name}")
+            raise ComponentError(f"{where}: {target} needs {what}, which this sequence / "
+                                 "runtime does not provide")
+        if value is not None:
+            deps[name] = value
+    try:
+        return instantiate(own, **children, **deps, **kwargs, _recursive_=False,
+                           _convert_="all")
+    except Exception as e:
+        cause = e.__cause__ if e.__cause__ is not None else e
+        msg = str(cause.args[0]) if isinstance(cause, KeyError) and cause.args else str(cause)
+        if isinstance(cause, TypeError) and "argument" in msg:  # a signature mismatch
+            msg = f"{target}: {msg}"
+        raise ComponentError(msg if msg.startswith(where) else f"{where}: {msg}") from cause
+
+
+def tracker_config(preset: str = "p", overrides: Sequence[str] = ()):
+    """The ``tracker`` node of ``torchmocap-track tracker=<preset> <overrides>`` (a
+    ``DictConfig``), composed with Hydra's compose API from the packaged configs.
+
+    ``overrides`` use the command line's syntax, e.g. ``tracker.num_particles=100`` or
+    ``noise@tracker.proposal.noise=gaussian``.
+    """
+    import warnings
+
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    args = [f"tracker={preset}", *overrides]
+    with warnings.catch_warnings():  # the repository's conf/ need not exist here
+        warnings.filterwarnings("ignore", message=r".*provider=hydra\.searchpath in main.*")
+        if GlobalHydra.instance().is_initialized():
+            return compose(config_name="track", overrides=args).tracker
+        with initialize_config_module(config_module="torchmocap.conf", version_base="1.3"):
+            return compose(config_name="track", overrides=args).tracker
+
+
+def build_tracker(config, runtime: Runtime, seed: int = 0):
+    """Build a :class:`~torchmocap.filters.Tracker` from its config node (e.g. from
+    :func:`tracker_config`) for the given runtime dependencies."""
+    from torchmocap.filters.tracker import Tracker
+
+    tracker = build(config, runtime, _path="tracker", seed=int(seed))
+    if not isinstance(tracker, Tracker):
+        raise ComponentError(f"tracker: _target_ built a {type(tracker).__name__}, expected a "
+                             "torchmocap.filters.Tracker")
+    return tracker

@@ -1,0 +1,181 @@
+"""What the Hydra commands share: sequences from the ``data`` node, run fingerprints, atomic
+JSON, failure records and the sweep status.
+
+* A run's **fingerprint** hashes its resolved config (without ``progress``), the package's code
+  and configs, and the content of every file the ``data`` node names. A run directory whose
+  ``metrics.json`` carries the same fingerprint is complete and up to date: rerunning the same
+  sweep into the same directory skips it, and a changed setting, data file or code reruns it.
+* A failing job writes ``failure.json`` (the error and its traceback) into its own directory,
+  prints one line on stderr and — in a multirun — lets the sweep go on;
+  :class:`SweepStatus` (a Hydra callback) counts this sweep's failures at its end, and the
+  command exits with status 2 when any job failed.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import os
+import sys
+import tempfile
+import time
+import traceback
+from pathlib import Path
+from typing import Any
+
+from hydra.experimental.callback import Callback
+
+__all__ = [
+    "SweepStatus",
+    "code_fingerprint",
+    "config_fingerprint",
+    "load_sequence",
+    "read_json",
+    "write_failure",
+    "write_json_atomic",
+]
+
+FAILURE_FILE = "failure.json"
+_failures: list[str] = []  # this process's sweep failures (filled by SweepStatus)
+
+
+def write_json_atomic(obj: Any, path: Path) -> None:
+    """Write JSON to ``path`` through a temporary file and a rename (mode 0644)."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            json.dump(obj, f, indent=2, allow_nan=False, default=_json_default)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _json_default(x):
+    import math
+
+    import torch
+
+    if isinstance(x, torch.Tensor):
+        x = x.tolist()
+        return x
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    raise TypeError(f"not JSON serialisable: {type(x).__name__}")
+
+
+def read_json(path: Path) -> Any | None:
+    """JSON content of ``path``, or None when it is missing or unreadable."""
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+
+
+@functools.lru_cache(maxsize=1)
+def code_fingerprint() -> str:
+    """SHA-256 of the package's Python sources and packaged configs (sorted by path)."""
+    root = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256()
+    for p in sorted(root.rglob("*")):
+        if p.suffix in (".py", ".yaml") and "__pycache__" not in p.parts:
+            h.update(str(p.relative_to(root)).encode())
+            h.update(p.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def _file_hashes(node) -> dict[str, str]:
+    """Content hashes of the existing files a config node names (clips, scenario YAMLs)."""
+    from omegaconf import OmegaConf
+
+    out: dict[str, str] = {}
+
+    def visit(v):
+        if isinstance(v, dict):
+            for x in v.values():
+                visit(x)
+        elif isinstance(v, list):
+            for x in v:
+                visit(x)
+        elif isinstance(v, str) and len(v) < 4096:
+            p = Path(v).expanduser()
+            if p.is_file():
+                out[v] = hashlib.sha256(p.read_bytes()).hexdigest()[:16]
+
+    visit(OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node)
+    return out
+
+
+def config_fingerprint(cfg, exclude: tuple[str, ...] = ("progress",)) -> str:
+    """Fingerprint of a run: resolved config (minus ``exclude`` keys and ``hydra``), the code,
+    and the content of the data files the config names."""
+    from omegaconf import OmegaConf
+
+    c = OmegaConf.to_container(cfg, resolve=True)
+    for k in exclude + ("hydra",):
+        c.pop(k, None)
+    blob = json.dumps({"config": c, "code": code_fingerprint(),
+                       "files": _file_hashes(c.get("data", {}))}, sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def load_sequence(cfg, min_frames: int = 2):
+    """Build the ``data`` node (a sequence source with ``_target_``) with the run's seed."""
+    from hydra.utils import get_object
+
+    from torchmocap.assembly import _accepts, build
+
+    extra = {}
+    fn = get_object(cfg.data._target_)
+    if _accepts(fn, "seed")[0]:
+        extra["seed"] = int(cfg.seed)
+    if _accepts(fn, "min_frames")[0]:
+        extra["min_frames"] = min_frames
+    return build(cfg.data, None, _path="data", **extra)
+
+
+def write_failure(out: Path, error: BaseException, fingerprint: str | None, command: str) -> str:
+    """Write ``out/failure.json`` for ``error``; returns the one-line message."""
+    msg = str(error.args[0]) if isinstance(error, KeyError) and error.args else str(error)
+    line = (msg.strip().splitlines() or [type(error).__name__])[0]
+    record = {"command": command, "error": line, "type": type(error).__name__,
+              "fingerprint": fingerprint, "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
+              "traceback": traceback.format_exception(type(error), error, error.__traceback__)}
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(record, out / FAILURE_FILE)
+    except OSError:
+        pass
+    return line
+
+
+class SweepStatus(Callback):
+    """Hydra callback: at the end of a multirun, count the jobs of *this* sweep that wrote a
+    ``failure.json`` and report them; the command then exits with status 2."""
+
+    def __init__(self) -> None:
+        self._start = time.time()
+
+    def on_multirun_start(self, config, **kwargs) -> None:
+        self._start = time.time() - 1.0
+        _failures.clear()
+
+    def on_multirun_end(self, config, **kwargs) -> None:
+        root = Path(str(config.hydra.sweep.dir))
+        failed = sorted(str(p.parent) for p in root.rglob(FAILURE_FILE)
+                        if p.stat().st_mtime >= self._start)
+        _failures[:] = failed
+        if failed:
+            print(f"{len(failed)} job(s) of the sweep failed (see failure.json in each):",
+                  file=sys.stderr)
+            for f in failed:
+                rec = read_json(Path(f) / FAILURE_FILE) or {}
+                print(f"  {f}: {rec.get('error', '?')}", file=sys.stderr)
+
+
+def sweep_failed() -> bool:
+    """Whether the multirun that just ended in this process had a failing job."""
+    return bool(_failures)

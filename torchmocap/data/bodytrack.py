@@ -1,0 +1,106 @@
+"""The real PARSEC bodytrack frame as a one-frame :class:`~torchmocap.data.Sequence`.
+
+A bodytrack frame folder holds ``CALIB/Camera<i>.cal`` (Bouguet calibrations in millimetres),
+``CAM<i>/image0000.bmp`` (640x480 grey images) and ``FG<i>/image0000.bmp`` (foreground masks).
+The loader carves the masks' visual hull, scales a human31 to the hull's height (the subject's
+tracking skeleton, ``meta["subject_skeleton"]``) and places standing candidate poses at the hull's
+centre, one per heading (``meta["initial_poses"]``) — what a tracker with
+``refine_first_frame`` starts from (``tracker=real_frame``). No ground truth.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import torch
+
+__all__ = ["load_bodytrack", "load_bodytrack_sequence"]
+
+
+def load_bodytrack(root: str | Path, scale: float = 1.0):
+    """``(rig, images (C, H, W) uint8, masks (C, H, W) bool)`` of a bodytrack frame folder.
+
+    Raises:
+        FileNotFoundError: a missing folder, calibration, image or mask (named).
+        ValueError: unreadable images or masks of another size than the camera's.
+    """
+    import numpy as np
+    from PIL import Image, UnidentifiedImageError
+
+    from torchmocap.cameras import read_bouguet_rig
+
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"data.path: no such folder: {root}")
+    cals = sorted((root / "CALIB").glob("Camera*.cal"))
+    if not cals:
+        raise FileNotFoundError(f"data.path: no CALIB/Camera*.cal under {root}")
+    if not (isinstance(scale, (int, float)) and 0 < scale <= 4):
+        raise ValueError(f"data.scale: expected an image scale in (0, 4], got {scale!r}")
+    rig = read_bouguet_rig(cals, unit="mm")
+    imgs, masks = [], []
+    for i in range(1, len(cals) + 1):
+        img, fg = root / f"CAM{i}" / "image0000.bmp", root / f"FG{i}" / "image0000.bmp"
+        if not img.is_file() or not fg.is_file():
+            raise FileNotFoundError(f"data.path: camera {i} image or mask missing in {root}")
+        try:
+            a = Image.open(img).convert("L")
+            m = Image.open(fg).convert("L")
+        except (UnidentifiedImageError, OSError) as e:
+            raise ValueError(f"data.path: cannot read camera {i}'s image or mask: {e}") from None
+        want = tuple(int(v) for v in rig.image_size[i - 1].tolist())
+        if a.size != want or m.size != want:
+            raise ValueError(f"data.path: camera {i}: image {a.size} / mask {m.size} differ from "
+                             f"the calibrated image size {want}")
+        if scale != 1.0:
+            size = (round(a.width * scale), round(a.height * scale))
+            a = a.resize(size, Image.BILINEAR)
+            m = m.resize(size, Image.NEAREST)
+        imgs.append(torch.from_numpy(np.asarray(a).copy()))
+        masks.append(torch.from_numpy(np.asarray(m) > 127))
+    if scale != 1.0:
+        rig = rig.scaled_images(scale)
+    return rig, torch.stack(imgs), torch.stack(masks)
+
+
+def load_bodytrack_sequence(path: str | Path, scale: float = 1.0, headings: int = 12,
+                            voxel: float = 0.04, seed: int = 0):
+    """One bodytrack frame as a :class:`~torchmocap.data.Sequence` (``scenario="recorded"``).
+
+    Args:
+        path: the frame folder.
+        scale: image scale (0.5 = 320x240).
+        headings: number of candidate headings of the standing start poses.
+        voxel: visual-hull voxel size (metres).
+        seed: unused (the loader is deterministic); accepted like every data source's.
+    """
+    from torchmocap.cameras import visual_hull
+    from torchmocap.data.sequence import Sequence
+    from torchmocap.skeleton import human31
+
+    if isinstance(headings, bool) or not isinstance(headings, int) or headings < 1:
+        raise ValueError(f"data.headings: expected an int >= 1, got {headings!r}")
+    root = Path(str(path)).expanduser().absolute()
+    rig, images, masks = load_bodytrack(root, float(scale))
+    hull = visual_hull(rig.double(), masks, [[-3, 3], [-3, 3], [-0.1, 2.3]], float(voxel))
+    pts = hull.largest_component().centers()
+    if pts.shape[0] == 0:
+        raise ValueError("data.path: the visual hull of the masks is empty (calibration or masks "
+                         "wrong)")
+    top = float(pts[:, 2].max())
+    centre = pts.mean(0)
+    size = min(max(top / 1.75, 0.85), 1.15)
+    sk = human31().with_bone_lengths(scale=size)
+    base = sk.zero_pose(dtype=torch.float32)
+    base[0], base[1] = float(centre[0]), float(centre[1])
+    base[2] = float(pts[:, 2].min().clamp(max=0.1))  # feet on the hull's floor
+    cands = base.repeat(headings, 1)
+    cands[:, sk.dof_index("pelvis_rz")] = torch.arange(headings) * (2 * math.pi / headings)
+    colour = images[..., None].expand(*images.shape, 3).contiguous()
+    return Sequence(
+        fps=25.0, scenario="recorded", rig=rig.float(), silhouettes=masks[None],
+        view_dropped=torch.zeros(1, rig.num_cameras, dtype=torch.bool), images=colour[None],
+        meta={"source": "bodytrack", "path": str(root), "subject_skeleton": sk.to_dict(),
+              "initial_poses": cands.tolist(), "hull_centre": centre.tolist(),
+              "hull_top_m": top, "skeleton_scale": size, "suggested_tracker": "real_frame"})

@@ -1,0 +1,289 @@
+"""Per-frame inference algorithms as modules: annealed particle optimisation and local descent.
+
+An inference module is called once per frame as
+
+    ``inference(energy, proposal, estimator, context, num, generator) -> InferenceResult``
+
+with ``energy`` a ``theta (P, D) -> (P,)`` callable (a bound likelihood,
+:class:`~torchmocap.likelihoods.FrameEnergy`), ``proposal`` a
+:class:`~torchmocap.proposals.Proposal` (the initial spread and the mutation kernel), ``estimator``
+an :class:`~torchmocap.filters.estimators.Estimator`, ``context`` the frame's
+:class:`~torchmocap.proposals.ProposalContext` (``previous`` = the prediction or the previous
+particles) and ``num`` the particle count. It returns the estimate, the final particles and
+weights, and diagnostics.
+
+* :class:`AnnealedInference` — Deutscher & Reid's annealed particle filter / Gall's interacting
+  simulated annealing as in Pons-Moll et al. §4.3: layer 0 draws ``num`` particles from the
+  proposal around ``context.previous``; every later layer selects by ``exp(−β_k V)`` (β from the
+  ESS schedule) and mutates the selected particles with the same proposal at a per-layer std
+  given by a diffusion rule (:class:`SpreadDiffusion`: the particles' spread in the proposal's
+  coordinates, cooled; :class:`ShrinkingDiffusion`: the proposal's own std times ``decay^k``).
+  ``rounds > 1`` restarts from the estimate with a smaller spread and keeps the best (static
+  fits of one frame).
+* :class:`LocalInference` — gradient descent on a differentiable energy from the prediction
+  (the L/LS baselines), optionally from several starts.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import nn
+
+from torchmocap.filters.annealed import anneal
+from torchmocap.filters.annealing import get_schedule
+from torchmocap.filters.local import minimise_local
+from torchmocap.filters.resampling import get_resampler
+
+__all__ = [
+    "AnnealedInference",
+    "Inference",
+    "InferenceResult",
+    "LocalInference",
+    "ShrinkingDiffusion",
+    "SpreadDiffusion",
+]
+
+_SUMMED_STATS = ("tries", "accepted", "rounds", "gimbal")
+
+
+@dataclass
+class InferenceResult:
+    """Output of an inference module for one frame.
+
+    Attributes:
+        estimate: ``(D,)`` point estimate.
+        particles: ``(P, D)`` final particles (or the optimised starts).
+        log_weights: ``(P,)`` normalised log weights of ``particles`` (None for local descent).
+        info: JSON-friendly diagnostics (β and ESS per layer, proposal statistics, timings).
+    """
+
+    estimate: torch.Tensor
+    particles: torch.Tensor | None = None
+    log_weights: torch.Tensor | None = None
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+class Inference(nn.Module):
+    """Base class of per-frame inference algorithms (see the module docstring)."""
+
+    def forward(self, energy, proposal, estimator, context, num: int,
+                generator: torch.Generator | None = None) -> InferenceResult:
+        raise NotImplementedError(f"{type(self).__name__} must implement forward()")
+
+
+def _check_fraction(name: str, v, lo: float = 0.0, hi: float = 1.0, lo_open=True) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
+            or (v <= lo if lo_open else v < lo) or v > hi:
+        raise ValueError(f"{name}: expected a number in {'(' if lo_open else '['}{lo}, {hi}], "
+                         f"got {v!r}")
+    return float(v)
+
+
+class SpreadDiffusion:
+    """Mutation std from the selected particles' spread (Gall et al.'s ISA, diagonal):
+    ``std_k = sqrt(rho · decay^k · var(x) + delta)`` per coordinate of the proposal.
+
+    Args:
+        rho: scale of the sample variance at the first mutation.
+        decay: per-mutation factor on ``rho``; default ``0.1^(1/(K−2))`` (cooled 10× over the
+            ``K`` layers: with a constant ρ the ESS schedule keeps the cloud at a constant
+            spread, measured in tests/filters/test_annealed.py).
+        delta: variance floor (coordinate units squared).
+    """
+
+    def __init__(self, rho: float = 0.5, decay: float | None = None, delta: float = 1e-8) -> None:
+        if not (isinstance(rho, (int, float)) and math.isfinite(rho) and rho > 0):
+            raise ValueError(f"rho: expected a positive number, got {rho!r}")
+        if decay is not None:
+            decay = _check_fraction("decay", decay)
+        if not (isinstance(delta, (int, float)) and math.isfinite(delta) and delta >= 0):
+            raise ValueError(f"delta: expected a number >= 0, got {delta!r}")
+        self.rho, self.decay, self.delta = float(rho), decay, float(delta)
+
+    def __call__(self, coords: torch.Tensor, step: int, layers: int, proposal) -> dict:
+        decay = self.decay if self.decay is not None else 0.1 ** (1.0 / max(layers - 2, 1))
+        x = coords.to(torch.float64)
+        var = (x - x.mean(0, keepdim=True)).square().sum(0) / max(x.shape[0] - 1, 1)
+        std = (self.rho * decay**step * var + self.delta).sqrt()
+        return {"std": std.to(coords.dtype)}
+
+    def __repr__(self) -> str:
+        return f"SpreadDiffusion(rho={self.rho}, decay={self.decay}, delta={self.delta})"
+
+
+class ShrinkingDiffusion:
+    """Mutation std = the proposal's own std times ``decay^k`` (PARSEC bodytrack: ``√α`` with
+    α = 0.5 per layer; VXL: 0.5)."""
+
+    def __init__(self, decay: float = math.sqrt(0.5)) -> None:
+        self.decay = _check_fraction("decay", decay)
+
+    def __call__(self, coords: torch.Tensor, step: int, layers: int, proposal) -> dict:
+        return {"scale": self.decay**step, "std": None}
+
+    def __repr__(self) -> str:
+        return f"ShrinkingDiffusion(decay={self.decay})"
+
+
+def _summarise(stats: list[dict]) -> dict:
+    """Per-layer proposal statistics -> one dict (sums of counts, means of rates)."""
+    out: dict[str, Any] = {}
+    keys = {k for s in stats for k, v in s.items()
+            if isinstance(v, (int, float)) and not isinstance(v, bool)}
+    for k in sorted(keys):
+        vals = [float(s[k]) for s in stats if k in s]
+        out[k] = sum(vals) if k in _SUMMED_STATS else sum(vals) / len(vals)
+    if "tries" in out and "accepted" in out:
+        out["acceptance_rate"] = out["accepted"] / max(out["tries"], 1.0)
+    if any("filled" in s for s in stats):
+        out["filled_min"] = min(float(s["filled"]) for s in stats if "filled" in s)
+    return out
+
+
+class AnnealedInference(Inference):
+    """Annealed particle optimisation with a proposal as the mutation kernel.
+
+    Args:
+        layers: ``K`` layers (energy evaluations of ``num`` particles).
+        schedule: an annealing schedule object (default
+            :class:`~torchmocap.filters.annealing.ESSSchedule` with α = 0.5: β so that the ESS
+            fraction of the weights is α, as in every public implementation) or a name
+            (``"ess"``, ``"polynomial"``, ``"geometric"``).
+        selection: a resampler object (:mod:`torchmocap.filters.resampling`; default
+            multinomial) or a name (``multinomial``, ``systematic``, ``stratified``,
+            ``residual``, ``keep_redraw``).
+        diffusion: :class:`SpreadDiffusion` (default) or :class:`ShrinkingDiffusion`.
+        rounds: restarts; round ``r`` starts from the previous round's result with the
+            proposal's spread scaled by ``round_scale^r``, and the lowest-energy result of all
+            rounds is kept (for one-frame fits from a rough start).
+        round_scale: see ``rounds``.
+    """
+
+    def __init__(self, layers: int = 15, schedule="ess", selection="multinomial",
+                 diffusion=None, rounds: int = 1, round_scale: float = 0.5) -> None:
+        super().__init__()
+        for name, v in (("layers", layers), ("rounds", rounds)):
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name}: expected an int >= 1, got {v!r}")
+        self.layers, self.rounds = layers, rounds
+        self.round_scale = _check_fraction("round_scale", round_scale)
+        self.schedule = get_schedule(schedule)
+        self.selection = get_resampler(selection, "selection")
+        self.diffusion = SpreadDiffusion() if diffusion is None else diffusion
+        if not callable(self.diffusion):
+            raise TypeError(f"diffusion: expected a diffusion rule, got "
+                            f"{type(self.diffusion).__name__}")
+
+    def _one_round(self, energy, proposal, estimator, context, num, generator):
+        stats: list[dict] = []
+
+        def diffuse(x, step, g):
+            fields = self.diffusion(proposal.coordinates(x), step, self.layers, proposal)
+            ctx = dataclasses.replace(context, previous=x, log_weights=None, **fields)
+            out = proposal.sample(ctx, x.shape[0], g)
+            stats.append(out.stats)
+            return out.particles
+
+        first = proposal.sample(context, num, generator)
+        stats.append(first.stats)
+        res = anneal(energy, first.particles, layers=self.layers, schedule=self.schedule,
+                     selection=self.selection, diffusion=diffuse, boundary="clamp",
+                     mean_fn=lambda x, w: estimator(x, w, context), generator=generator)
+        return res, stats
+
+    def forward(self, energy, proposal, estimator, context, num: int,
+                generator: torch.Generator | None = None) -> InferenceResult:
+        t0 = time.perf_counter()
+        best = None
+        info: dict[str, Any] = {"beta": [], "ess": [], "min_energy": []}
+        all_stats: list[dict] = []
+        ctx = context
+        for r in range(self.rounds):
+            if r > 0:
+                ctx = dataclasses.replace(context, previous=best[0], log_weights=None,
+                                          scale=context.scale * self.round_scale**r)
+            res, stats = self._one_round(energy, proposal, estimator, ctx, num, generator)
+            all_stats += stats
+            info["beta"] += [float(b) for b in res.beta]
+            info["ess"] += [float(e) for e in res.ess]
+            info["min_energy"] += [float(e) for e in res.min_energy]
+            cand = res.estimate
+            if self.rounds > 1:  # keep the lowest-energy result over all rounds
+                with torch.no_grad():
+                    v = energy(torch.stack([res.estimate, res.best]))
+                cand, v_c = (res.best, float(v[1])) if v[1] < v[0] else (res.estimate,
+                                                                          float(v[0]))
+                if best is not None and v_c > best[1]:
+                    cand, v_c = best[0], best[1]
+                best = (cand, v_c, res)
+            else:
+                best = (cand, math.nan, res)
+        est, _, res = best
+        info["proposal"] = _summarise(all_stats)
+        info["seconds_inference"] = time.perf_counter() - t0
+        if self.rounds > 1:
+            info["rounds"] = self.rounds
+            info["seconds_per_round"] = info["seconds_inference"] / self.rounds
+        return InferenceResult(estimate=est, particles=res.particles,
+                               log_weights=res.log_weights, info=info)
+
+    def extra_repr(self) -> str:
+        return (f"layers={self.layers}, schedule={self.schedule!r}, "
+                f"selection={self.selection!r}, diffusion={self.diffusion!r}, "
+                f"rounds={self.rounds}")
+
+
+class LocalInference(Inference):
+    """Local descent of a differentiable energy from the prediction (the L/LS baselines).
+
+    Args:
+        skeleton: the tracking model (its joint limits bound the descent).
+        method: ``"adam"`` (clamped after each step) or ``"lbfgs"`` (projected, per problem).
+        iterations: steps.
+        lr: Adam learning rate (radians / metres per step).
+        starts: ``1`` = the prediction only; ``n > 1`` adds ``n − 1`` proposal draws around it
+            and keeps the lowest-energy result.
+    """
+
+    def __init__(self, skeleton, method: str = "adam", iterations: int = 40, lr: float = 0.02,
+                 starts: int = 1) -> None:
+        super().__init__()
+        if method not in ("adam", "lbfgs"):
+            raise ValueError(f"method: expected 'adam' or 'lbfgs', got {method!r}")
+        for name, v in (("iterations", iterations), ("starts", starts)):
+            if isinstance(v, bool) or not isinstance(v, int) or v < (0 if name == "iterations"
+                                                                      else 1):
+                raise ValueError(f"{name}: expected an int >= {0 if name == 'iterations' else 1}"
+                                 f", got {v!r}")
+        if not (isinstance(lr, (int, float)) and math.isfinite(lr) and lr > 0):
+            raise ValueError(f"lr: expected a positive number, got {lr!r}")
+        self.method, self.iterations, self.lr, self.starts = method, iterations, float(lr), starts
+        self.register_buffer("lower", skeleton.lower.detach().clone())
+        self.register_buffer("upper", skeleton.upper.detach().clone())
+
+    def forward(self, energy, proposal, estimator, context, num: int,
+                generator: torch.Generator | None = None) -> InferenceResult:
+        t0 = time.perf_counter()
+        prev = context.previous
+        x0 = prev[None] if prev.dim() == 1 else prev[:1]
+        if self.starts > 1:
+            extra = proposal.sample(context, self.starts - 1, generator).particles
+            x0 = torch.cat([x0, extra.to(x0.dtype)])
+        lo, hi = self.lower.to(x0.dtype), self.upper.to(x0.dtype)
+        res = minimise_local(energy, x0, method=self.method, iterations=self.iterations,
+                             lower=lo, upper=hi, lr=self.lr)
+        i = int(torch.argmin(res.energy))
+        info = {"final_energy": float(res.energy[i]), "start_energy": float(res.trace[0, i]),
+                "iterations": res.iterations, "seconds_inference": time.perf_counter() - t0}
+        return InferenceResult(estimate=res.x[i].detach(), particles=res.x.detach(),
+                               log_weights=None, info=info)
+
+    def extra_repr(self) -> str:
+        return (f"method={self.method!r}, iterations={self.iterations}, lr={self.lr}, "
+                f"starts={self.starts}")

@@ -1,0 +1,235 @@
+"""The likelihood interface: energy terms of poses given one frame's observations.
+
+Convention (one for the whole library): a likelihood term returns an **energy**
+``V = −log p(z | θ) + const`` per particle, shape ``(P,)``, lower is better. Annealing weights
+particles by ``exp(−β V)``, a local optimiser descends ``V``, an SIR filter uses ``−V`` as the log
+likelihood.
+
+A term is an ``nn.Module`` with
+
+- ``requires``: the observation modalities it reads (``"silhouettes"``, ``"images"``, ``"imu"``,
+  ``"depth"``, ``"joints2d"``); a tracker refuses a sequence that lacks one;
+- ``prepare(frame)``: per-frame preprocessing done once (sampled foreground pixels, colour
+  planes, sensor rotations); the default returns the frame itself;
+- ``energy(poses, observation) -> (P,)``: the energy of every particle, where ``poses`` is a
+  :class:`Poses` — forward kinematics and capsule endpoints are computed once per evaluation and
+  shared by all terms.
+
+:class:`WeightedSum` combines terms with weights from the config (``V = Σ_k w_k V_k``; a term of
+weight 0 is neither evaluated nor required). :class:`FrameEnergy` binds a likelihood to one
+prepared frame, giving the ``theta (P, D) -> (P,)`` callable that inference algorithms minimise.
+
+Example:
+    >>> from torchmocap.skeleton import human31
+    >>> class Upright(Likelihood):            # a user's term: keep the spine straight
+    ...     def energy(self, poses, observation):
+    ...         return poses.kinematics.rotations[:, 1, 2, 2].neg() + 1
+    >>> sk = human31()
+    >>> V = FrameEnergy(Upright(), None, sk)
+    >>> V(sk.zero_pose((5,))).shape
+    torch.Size([5])
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+from torch import nn
+
+__all__ = ["FrameEnergy", "Likelihood", "Poses", "WeightedSum", "check_energy"]
+
+
+class Poses:
+    """A batch of poses ``theta (P, D)`` with lazily computed, cached kinematics.
+
+    Args:
+        theta: ``(P, D)`` poses of ``skeleton``.
+        skeleton: the tracking model (:class:`~torchmocap.skeleton.Skeleton`).
+
+    ``kinematics`` (global frames and positions) is computed on first use; ``endpoints(body)``
+    gives the capsule axes ``(P, B, 2, 3)`` of a :class:`~torchmocap.body.CapsuleBody`, cached per
+    body. Terms read these instead of running their own forward kinematics.
+    """
+
+    __slots__ = ("theta", "skeleton", "_kin", "_endpoints")
+
+    def __init__(self, theta: torch.Tensor, skeleton) -> None:
+        self.theta = theta
+        self.skeleton = skeleton
+        self._kin = None
+        self._endpoints: dict[int, torch.Tensor] = {}
+
+    @property
+    def num(self) -> int:
+        """Number of particles ``P``."""
+        return int(self.theta.shape[0])
+
+    @property
+    def kinematics(self):
+        """:class:`~torchmocap.skeleton.Kinematics` of ``theta`` (computed once)."""
+        if self._kin is None:
+            self._kin = self.skeleton(self.theta, check_finite=False)
+        return self._kin
+
+    def endpoints(self, body) -> torch.Tensor:
+        """Capsule endpoints ``(P, B, 2, 3)`` of ``body`` at these poses (computed once)."""
+        key = id(body)
+        ep = self._endpoints.get(key)
+        if ep is None:
+            kin = (self.kinematics if body.skeleton is self.skeleton
+                   else body.skeleton(self.theta, check_finite=False))
+            ep = body.endpoints(kin)
+            self._endpoints[key] = ep
+        return ep
+
+
+def check_energy(v: Any, num: int, name: str) -> torch.Tensor:
+    """Check that a term returned a ``(num,)`` float tensor without NaN (typed errors)."""
+    if not isinstance(v, torch.Tensor) or v.shape != (num,):
+        shape = tuple(v.shape) if isinstance(v, torch.Tensor) else type(v).__name__
+        raise ValueError(f"{name}: expected an energy of shape ({num},), got {shape}")
+    if bool(torch.isnan(v).any()):
+        raise ValueError(f"{name}: returned NaN for {int(torch.isnan(v).sum())} of {num} "
+                         "particles")
+    return v
+
+
+class Likelihood(nn.Module):
+    """Base class of likelihood terms (see the module docstring for the contract).
+
+    Subclasses set ``requires`` and implement :meth:`energy`; override :meth:`prepare` for
+    per-frame preprocessing. ``forward`` is :meth:`energy`.
+    """
+
+    requires: tuple[str, ...] = ()
+
+    def prepare(self, frame: Any) -> Any:
+        """Per-frame preprocessing of ``frame`` (a :class:`~torchmocap.data.Frame`); the result
+        is passed to every :meth:`energy` call of that frame. Default: the frame itself."""
+        return frame
+
+    def energy(self, poses: Poses, observation: Any) -> torch.Tensor:
+        """Energy ``(P,)`` of ``poses`` given the prepared ``observation``."""
+        raise NotImplementedError(f"{type(self).__name__} must implement energy()")
+
+    def forward(self, poses: Poses, observation: Any) -> torch.Tensor:
+        return self.energy(poses, observation)
+
+    def log_likelihood(self, poses: Poses, observation: Any) -> torch.Tensor:
+        """``−energy``: the log-likelihood up to a constant."""
+        return -self.energy(poses, observation)
+
+
+class WeightedSum(Likelihood):
+    """``V = Σ_k w_k V_k`` over named terms (Pons-Moll eq. 17: ``λ1 V_silh + λ2 V_app``).
+
+    Args:
+        terms: ``{name: Likelihood}``.
+        weights: ``{name: weight}``; missing names weigh 1. A weight of 0 switches a term off
+            (not evaluated, its modalities not required). Weights must be finite and ``>= 0``.
+        learn_weights: make the weights ``nn.Parameter``s (stored as log-weights, so they stay
+            positive) for training.
+    """
+
+    def __init__(self, terms: Mapping[str, Likelihood], weights: Mapping[str, float] | None = None,
+                 learn_weights: bool = False) -> None:
+        super().__init__()
+        if not isinstance(terms, Mapping) or not terms:
+            raise ValueError("terms: expected a non-empty mapping {name: Likelihood}")
+        for name, t in terms.items():
+            if not isinstance(t, Likelihood):
+                raise TypeError(f"terms.{name}: expected a torchmocap Likelihood, got "
+                                f"{type(t).__name__}")
+        weights = dict(weights or {})
+        unknown = sorted(set(weights) - set(terms))
+        if unknown:
+            raise ValueError(f"weights: no term named {unknown}; terms are {sorted(terms)}")
+        w = {}
+        for name in terms:
+            v = weights.get(name, 1.0)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
+                    or v < 0:
+                raise ValueError(f"weights.{name}: expected a finite number >= 0, got {v!r}")
+            w[name] = float(v)
+        self.terms = nn.ModuleDict(dict(terms))
+        self.learn_weights = bool(learn_weights)
+        if self.learn_weights:
+            if any(v == 0 for v in w.values()):
+                raise ValueError("weights: learnable weights must start > 0")
+            self.log_weights = nn.ParameterDict(
+                {k: nn.Parameter(torch.tensor(math.log(v))) for k, v in w.items()})
+        else:
+            self._weights = w
+
+    @property
+    def weights(self) -> dict[str, float]:
+        """Current weight of every term."""
+        if self.learn_weights:
+            return {k: float(p.detach().exp()) for k, p in self.log_weights.items()}
+        return dict(self._weights)
+
+    def _weight(self, name: str):
+        return self.log_weights[name].exp() if self.learn_weights else self._weights[name]
+
+    def active_terms(self) -> list[str]:
+        """Names of the terms with a non-zero weight."""
+        return [k for k in self.terms if self.learn_weights or self._weights[k] != 0]
+
+    @property
+    def requires(self) -> tuple[str, ...]:  # type: ignore[override]
+        out: list[str] = []
+        for k in self.active_terms():
+            out += [m for m in self.terms[k].requires if m not in out]
+        return tuple(out)
+
+    def prepare(self, frame: Any) -> dict[str, Any]:
+        return {k: self.terms[k].prepare(frame) for k in self.active_terms()}
+
+    def term_energies(self, poses: Poses, observation: Mapping[str, Any]
+                      ) -> dict[str, torch.Tensor]:
+        """Unweighted energy ``(P,)`` of every active term."""
+        return {k: check_energy(self.terms[k].energy(poses, observation[k]), poses.num,
+                                f"terms.{k}")
+                for k in self.active_terms()}
+
+    def energy(self, poses: Poses, observation: Mapping[str, Any]) -> torch.Tensor:
+        total = None
+        for k, v in self.term_energies(poses, observation).items():
+            wv = v * self._weight(k)
+            total = wv if total is None else total + wv
+        return total
+
+    def extra_repr(self) -> str:
+        return f"weights={self.weights}"
+
+
+class FrameEnergy:
+    """A likelihood bound to one frame: ``V(theta (P, D)) -> (P,)``.
+
+    Args:
+        likelihood: a :class:`Likelihood` (e.g. a :class:`WeightedSum`).
+        observation: ``likelihood.prepare(frame)``.
+        skeleton: the model the poses belong to (one forward kinematics per call, shared by all
+            terms).
+    """
+
+    def __init__(self, likelihood: Likelihood, observation: Any, skeleton) -> None:
+        self.likelihood = likelihood
+        self.observation = observation
+        self.skeleton = skeleton
+
+    def __call__(self, theta: torch.Tensor) -> torch.Tensor:
+        if theta.dim() != 2:
+            raise ValueError(f"theta: expected shape (P, D), got {tuple(theta.shape)}")
+        v = self.likelihood.energy(Poses(theta, self.skeleton), self.observation)
+        return check_energy(v, theta.shape[0], f"likelihood {type(self.likelihood).__name__}")
+
+    def terms(self, theta: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Per-term unweighted energies ``{name: (P,)}`` (a single term is named ``energy``)."""
+        poses = Poses(theta, self.skeleton)
+        if isinstance(self.likelihood, WeightedSum):
+            return self.likelihood.term_energies(poses, self.observation)
+        return {"energy": self.likelihood.energy(poses, self.observation)}
