@@ -98,7 +98,8 @@ class Runtime:
                                                 sequence.imu.tracking.tolist()) if t}
         manifold = SensorManifold(skeleton, sensors) if sensors else None
         rig = None if sequence.rig is None else sequence.rig.to(dtype)
-        return cls(skeleton=skeleton, body=CapsuleBody(skeleton), rig=rig, manifold=manifold,
+        return cls(skeleton=skeleton, body=CapsuleBody(skeleton).to(dtype), rig=rig,
+                   manifold=manifold,
                    sensors=sensors)
 
 

@@ -364,3 +364,51 @@ def test_float32_rotation_group():
     pred = predict_ar3(eul[:3], rotation_groups=[group])
     assert pred.dtype == torch.float32
     assert float(geodesic_angle(ZYX(pred.double()), rs[3])) < 1e-5
+
+
+class TestPosePredictor:
+    """The tracker's predictor module: AR(3) with the root on SO(3) from three estimates, half a
+    velocity step from two, the estimate itself from one; always inside the joint limits."""
+
+    def test_feature_history_lengths(self):
+        from torchmocap.filters import PosePredictor
+        from torchmocap.skeleton import human31
+
+        sk = human31()
+        p = PosePredictor(sk, damping=(0.8, 0.3))
+        e = sk.dof_index("l_elbow_flex")
+        h = sk.zero_pose((3,))
+        h[:, e] = torch.tensor([0.2, 0.4, 0.7])
+        # damped: x1 + 0.8 (x1 - x2) + 0.3 ((x1 - x2) - (x2 - x3))
+        assert p(h)[e].item() == pytest.approx(0.7 + 0.8 * 0.3 + 0.3 * (0.3 - 0.2), abs=1e-5)
+        assert p(h[1:])[e].item() == pytest.approx(0.7 + 0.5 * 0.3, abs=1e-6)
+        assert torch.equal(p(h[2:]), h[2])
+        assert PosePredictor(sk, "constant_position")(h)[e].item() == pytest.approx(0.7)
+        ca = PosePredictor(sk, "constant_acceleration")(h)[e].item()
+        assert ca == pytest.approx(3 * 0.7 - 3 * 0.4 + 0.2, abs=1e-5)
+        h[:, e] = torch.tensor([2.0, 2.4, 2.6])  # extrapolates past the 150 deg elbow limit
+        assert p(h)[e].item() == pytest.approx(float(sk.upper[e]))
+
+    def test_feature_root_heading_across_the_seam(self):
+        from torchmocap.filters import PosePredictor
+        from torchmocap.skeleton import human31
+
+        sk = human31()
+        rz = sk.dof_index("pelvis_rz")
+        h = sk.zero_pose((3,))
+        h[:, rz] = torch.tensor([3.0, 3.1, 3.2])  # constant rate through +pi
+        out = PosePredictor(sk, "constant_acceleration")(h)[rz].item()
+        d = math.remainder(out - 3.3, 2 * math.pi)
+        assert abs(d) < 1e-4
+
+    def test_exception(self):
+        from torchmocap.filters import PosePredictor
+        from torchmocap.skeleton import human31
+
+        sk = human31()
+        with pytest.raises(ValueError, match="mode"):
+            PosePredictor(sk, "least_squares")
+        with pytest.raises(ValueError, match="damping"):
+            PosePredictor(sk, damping=(1.0,))
+        with pytest.raises(ValueError, match="history"):
+            PosePredictor(sk)(torch.zeros(3, 5))

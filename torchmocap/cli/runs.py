@@ -123,18 +123,42 @@ def config_fingerprint(cfg, exclude: tuple[str, ...] = ("progress",)) -> str:
 
 
 def load_sequence(cfg, min_frames: int = 2):
-    """Build the ``data`` node (a sequence source with ``_target_``) with the run's seed."""
+    """Build the ``data`` node (a sequence source with ``_target_``; its ``seed`` defaults to
+    the run's). With ``sequence_cache: <dir>`` in the config, the sequence is saved under
+    ``<dir>/<fingerprint of the data node, the code and the data files>`` and read back by later
+    runs with the same data settings (e.g. every tracker and seed of a sweep)."""
     from hydra.utils import get_object
+    from omegaconf import OmegaConf
 
     from torchmocap.assembly import _accepts, build
 
     extra = {}
     fn = get_object(cfg.data._target_)
-    if _accepts(fn, "seed")[0]:
+    if "seed" not in cfg.data and _accepts(fn, "seed")[0]:
         extra["seed"] = int(cfg.seed)
     if _accepts(fn, "min_frames")[0]:
         extra["min_frames"] = min_frames
-    return build(cfg.data, None, _path="data", **extra)
+    cache = cfg.get("sequence_cache")
+    key = None
+    if cache:
+        from torchmocap.data import Sequence, SequenceFormatError
+
+        node = OmegaConf.to_container(cfg.data, resolve=True)
+        blob = json.dumps({"data": node, "extra": extra, "code": code_fingerprint(),
+                           "files": _file_hashes(node)}, sort_keys=True, default=str)
+        key = Path(str(cache)).expanduser() / hashlib.sha256(blob.encode()).hexdigest()[:16]
+        if (key / "manifest.json").is_file():
+            try:
+                return Sequence.load(key)
+            except (SequenceFormatError, OSError, ValueError):
+                pass  # unreadable: rebuild and replace it
+    seq = build(cfg.data, None, _path="data", **extra)
+    if key is not None:
+        try:
+            seq.save(key, overwrite=True)
+        except OSError:  # another job of the sweep is writing the same entry
+            pass
+    return seq
 
 
 def write_failure(out: Path, error: BaseException, fingerprint: str | None, command: str) -> str:

@@ -139,6 +139,9 @@ def _errors(seq, sk, theta) -> dict:
     ori = orientation_error_deg(kin.rotations[1:, vb], gt.rotations[1:, vb].float())
     mp = mpjpe_mm(kin.positions[1:], gt.positions[1:].float())
     summary = {"validation_bones": val, **summarize_errors(ori, val, mp)}
+    summary["orientation_error_deg"]["per_frame"] = [round(float(v), 4) for v in ori.mean(1)]
+    summary["orientation_error_deg"]["per_bone_frame"] = {
+        b: [round(float(v), 4) for v in ori[:, k]] for k, b in enumerate(val)}
     return {"summary": summary, "theta_gt": gt.theta, "orientation_error_deg": ori,
             "mpjpe_mm": mp}
 

@@ -50,7 +50,8 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
     """Clip -> fitted human31 subject -> observations synthesised under ``scenario``.
 
     Args:
-        clip: ``path`` (BVH/AMC/ASF; null = the bundled walk), ``asf`` (skeleton of an AMC),
+        clip: ``name`` (a label for run directories and reports), ``path`` (BVH/AMC/ASF;
+            null = the bundled walk), ``asf`` (skeleton of an AMC),
             ``skeleton_map`` (family name or map YAML; null = auto-detected), ``fps`` (resample
             to; null = the scenario's), ``skip_frames`` (leading source frames to drop),
             ``start`` (seconds to skip after resampling), ``frames`` (frames to keep; null =
@@ -67,7 +68,7 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
     from torchmocap.data.subject import fit_subject
     from torchmocap.io import load_motion
 
-    allowed = {"path", "asf", "skeleton_map", "fps", "skip_frames", "start", "frames"}
+    allowed = {"name", "path", "asf", "skeleton_map", "fps", "skip_frames", "start", "frames"}
     unknown = sorted(set(clip) - allowed)
     if unknown:
         raise DataConfigError(f"data.clip: unknown keys {unknown}; expected {sorted(allowed)}")
@@ -106,7 +107,7 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
         motion = motion.slice(a, end)
     subject = fit_subject(motion, skeleton_map=smap)
     seq = synthesize(subject, sc, seed=int(seed))
-    seq.meta["clip"] = {"path": path, "asf": asf, "skeleton_map": smap, "skip_frames": skip,
-                        "start": float(start), "fps": fps, "frames": seq.num_frames,
-                        "family": subject.family}
+    seq.meta["clip"] = {"name": clip.get("name"), "path": path, "asf": asf,
+                        "skeleton_map": smap, "skip_frames": skip, "start": float(start),
+                        "fps": fps, "frames": seq.num_frames, "family": subject.family}
     return seq

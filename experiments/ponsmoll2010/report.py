@@ -1,0 +1,234 @@
+"""Pons-Moll et al. (2010): tables and plots of Figs. 8, 9a, 10 and the control experiment, from
+the runs' ``metrics.json``.
+
+The runs are made by the experiment configs (from the repository root)::
+
+    OMP_NUM_THREADS=1 torchmocap-track -m +experiment=ponsmoll2010/fig8 hydra/launcher=joblib
+    python experiments/ponsmoll2010/report.py fig8        # -> results/fig8.md, results/fig8.png
+
+(likewise ``fig9a``, ``fig10``, ``control``; ``all`` reports every figure whose runs exist).
+Each job writes ``runs/<figure>/<...>/metrics.json`` (its directory names the clip, tracker and
+seed); a figure's report needs all of its jobs and says which are missing or failed.
+Cells read ``mean ± std over frames, bones and seeds (± spread of the per-seed means)``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+RUNS = HERE / "runs"
+RESULTS = HERE / "results"
+
+ACTIVITIES = {"walking": "walking", "jumping": "jumping", "kicking": "kicking",
+              "basketball": "basketball", "dancing": "dancing", "arm_rotation": "arm rotation"}
+METHODS = ["l", "ls", "g", "gs", "rs", "p"]
+PAPER_FIG8 = {"p": "**10.78 ± 8.5**", "gs": "not in Fig. 8", "g": "above P (GL)",
+              "rs": "not in Fig. 8", "ls": "above P", "l": "above P"}
+SEEDS = [0, 1, 2]
+
+
+def load(figure: str, *parts: str) -> dict | None:
+    """metrics.json of one job, or None (missing / failed)."""
+    p = RUNS / figure / Path(*parts) / "metrics.json"
+    if not p.is_file():
+        return None
+    return json.loads(p.read_text())
+
+
+def runs_of(figure: str, *parts: str, seeds=SEEDS) -> list[dict]:
+    out, missing = [], []
+    for s in seeds:
+        m = load(figure, *parts, f"seed{s}")
+        if m is None:
+            missing.append(str(Path(figure, *parts, f"seed{s}")))
+        else:
+            out.append(m)
+    if missing:
+        failed = [m for m in missing if (RUNS / m / "failure.json").is_file()]
+        raise SystemExit(f"{figure}: missing runs {missing} (failed: {failed}); run "
+                         f"`torchmocap-track -m +experiment=ponsmoll2010/{figure}` first")
+    return out
+
+
+def combine(runs: list[dict]) -> dict:
+    """Pool runs of several tracker seeds: mean error, std over frames x bones x seeds, the
+    spread (std) of the per-seed means, per-bone means and per-frame curves averaged over
+    seeds."""
+    n = len(runs)
+    oris = [r["orientation_error_deg"] for r in runs]
+    mean = sum(o["mean"] for o in oris) / n
+    std = math.sqrt(sum(o["std"] ** 2 + (o["mean"] - mean) ** 2 for o in oris) / n)
+    spread = math.sqrt(sum((o["mean"] - mean) ** 2 for o in oris) / max(n - 1, 1))
+    bones = list(oris[0]["per_bone"])
+    per_bone = {b: sum(o["per_bone"][b] for o in oris) / n for b in bones}
+    per_bone_frame = {b: [sum(v) / n for v in zip(*(o["per_bone_frame"][b] for o in oris))]
+                      for b in bones}
+    out = {"ori_mean": mean, "ori_std": std, "seed_spread": spread, "seeds": n,
+           "ori_per_bone": per_bone, "ori_per_bone_frame": per_bone_frame,
+           "seconds_per_frame": sum(r["seconds_per_frame"] for r in runs) / n,
+           "frames": runs[0]["frames"], "per_seed": [o["mean"] for o in oris]}
+    below = [r["estimate_energy_below_truth"] for r in runs
+             if "estimate_energy_below_truth" in r]
+    if below:
+        out["below"] = sum(below) / len(below)
+    return out
+
+
+def cell(r: dict) -> str:
+    if r.get("seeds", 1) > 1:
+        return f"{r['ori_mean']:.1f} ± {r['ori_std']:.1f} (±{r['seed_spread']:.1f})"
+    return f"{r['ori_mean']:.1f} ± {r['ori_std']:.1f}"
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def fig8() -> str:
+    rows = {(a, m): combine(runs_of("fig8", a, m)) for a in ACTIVITIES for m in METHODS}
+    p = rows[("walking", "p")]
+    lines = ["# Fig. 8: validation orientation error (deg): mean ± std over frames, the 5 "
+             "validation sensors and tracker seeds 0-2 (± spread of the per-seed means); outdoor "
+             "scenario, up to 75 frames at 25 fps, 200 particles x 15 layers "
+             f"(`+experiment=ponsmoll2010/fig8`, {p['seeds']} seeds per cell)", "",
+             "| activity | " + " | ".join(m.upper() for m in METHODS) + " |",
+             "|---|" + "---|" * len(METHODS)]
+    for a, label in ACTIVITIES.items():
+        lines.append(f"| {label} ({rows[(a, 'p')]['frames'] - 1} frames) | "
+                     + " | ".join(cell(rows[(a, m)]) for m in METHODS) + " |")
+    allm = {m: [rows[(a, m)] for a in ACTIVITIES] for m in METHODS}
+    mean = {m: sum(r["ori_mean"] for r in v) / len(v) for m, v in allm.items()}
+    std = {m: math.sqrt(sum(r["ori_std"] ** 2 + (r["ori_mean"] - mean[m]) ** 2 for r in v)
+                        / len(v)) for m, v in allm.items()}
+    lines.append("| **all** | " + " | ".join(f"**{mean[m]:.1f} ± {std[m]:.1f}**"
+                                                for m in METHODS) + " |")
+    lines.append("| s / frame (1 core) | " + " | ".join(
+        f"{sum(r['seconds_per_frame'] for r in allm[m]) / len(allm[m]):.2f}" for m in METHODS)
+        + " |")
+    lines.append("| paper (8 sequences) | " + " | ".join(PAPER_FIG8[m] for m in METHODS)
+                 + " |")
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(8, 4))
+    w = 0.13
+    for k, m in enumerate(METHODS):
+        ax.bar([i + (k - 2.5) * w for i in range(len(ACTIVITIES))],
+               [rows[(a, m)]["ori_mean"] for a in ACTIVITIES], w, label=m.upper(),
+               yerr=[rows[(a, m)]["seed_spread"] for a in ACTIVITIES], capsize=2)
+    ax.set_xticks(range(len(ACTIVITIES)))
+    ax.set_xticklabels(list(ACTIVITIES.values()), fontsize=8)
+    ax.set_ylabel("validation error (deg)")
+    ax.axhline(10.78, color="k", ls=":", lw=1, label="paper P")
+    ax.set_title("bars: seed spread", fontsize=8)
+    ax.legend(fontsize=7, ncol=7)
+    fig.tight_layout()
+    fig.savefig(RESULTS / "fig8.png", dpi=110)
+    plt.close(fig)
+    return "\n".join(lines)
+
+
+def fig9a() -> str:
+    counts = [25, 50, 100, 200]
+    res = {(m, n): combine(runs_of("fig9a", m, f"n{n}")) for m in ("gs", "p") for n in counts}
+    lines = ["# Fig. 9a: validation error (deg) vs number of particles, walking clip, outdoor, "
+             "15 layers, 75 frames, tracker seeds 0-2 (mean ± std over frames, bones and seeds; "
+             "± spread of the per-seed means) (`+experiment=ponsmoll2010/fig9a`)", "",
+             "| particles | " + " | ".join(str(n) for n in counts) + " |",
+             "|---|" + "---|" * len(counts)]
+    for m in ("gs", "p"):
+        lines.append(f"| {m.upper()} | " + " | ".join(cell(res[(m, n)]) for n in counts) + " |")
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    for m in ("gs", "p"):
+        ax.errorbar(counts, [res[(m, n)]["ori_mean"] for n in counts],
+                    [res[(m, n)]["seed_spread"] for n in counts], marker="o", capsize=3,
+                    label=f"{m.upper()} (bars: seed spread)")
+    ax.set_xscale("log")
+    ax.minorticks_off()
+    ax.set_xticks(counts)
+    ax.set_xticklabels([str(n) for n in counts])
+    ax.set_xlabel("particles")
+    ax.set_ylabel("validation error (deg)")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(RESULTS / "fig9a.png", dpi=110)
+    plt.close(fig)
+    return "\n".join(lines)
+
+
+def fig10() -> str:
+    noises = [("none", "p_nonoise"), ("Gaussian on passive parameters", "p_gaussian"),
+              ("vMF, κ = 1000", "p")]
+    paper = {"p_nonoise": 26.8, "p_gaussian": 13.0, "p": 7.3}
+    res = {t: combine(runs_of("fig10", t)) for _, t in noises}
+    lines = ["# Fig. 10: left-hip validation error (deg) of P with three sensor-noise models, "
+             "walking clip with 5-10 deg sensor misalignment (studio), 200 x 15, 75 frames, "
+             "tracker seeds 0-2 (`+experiment=ponsmoll2010/fig10`)", "",
+             "| noise model (preset) | left hip (ours) | all 5 sensors (ours) | left hip (paper) |",
+             "|---|---|---|---|"]
+    for label, t in noises:
+        r = res[t]
+        lines.append(f"| {label} (`{t}`) | {r['ori_per_bone']['l_hip']:.1f} | {cell(r)} | "
+                     f"{paper[t]} |")
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    for label, t in noises:
+        y = res[t]["ori_per_bone_frame"]["l_hip"]
+        ax.plot([(i + 1) / 25 for i in range(len(y))], y, label=label)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("left hip error (deg), mean of 3 seeds")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(RESULTS / "fig10.png", dpi=110)
+    plt.close(fig)
+    return "\n".join(lines)
+
+
+def control() -> str:
+    conditions = [("capsules, clean, fitted truth", "capsules_clean_fitted"),
+                  ("capsules, clean", "capsules_clean"),
+                  ("skinned mesh, clean", "skinned_clean"),
+                  ("skinned mesh, outdoor", "skinned_outdoor")]
+    acts = ["walking", "jumping", "basketball"]
+    res = {(c, a): combine(runs_of("control", c, a)) for _, c in conditions for a in acts}
+    lines = ["# Control: P (200 x 15) with observations from the tracker's own capsules vs the "
+             "skinned mesh; 75 frames, seeds 0-2 (`+experiment=ponsmoll2010/control`). Cells: "
+             "validation error (deg) mean ± std (± seed spread); in brackets the fraction of "
+             "frames whose estimate has a lower energy than the true pose.", "",
+             "| observations (data option) | " + " | ".join(acts) + " |",
+             "|---|" + "---|" * len(acts)]
+    for label, c in conditions:
+        lines.append(f"| {label} (`{c}`) | " + " | ".join(
+            f"{cell(res[(c, a)])} [{res[(c, a)]['below']:.2f}]" for a in acts) + " |")
+    return "\n".join(lines)
+
+
+FIGURES = {"fig8": fig8, "fig9a": fig9a, "fig10": fig10, "control": control}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("figure", choices=[*FIGURES, "all"])
+    args = ap.parse_args()
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    todo = list(FIGURES) if args.figure == "all" else [args.figure]
+    for name in todo:
+        if args.figure == "all" and not (RUNS / name).is_dir():
+            print(f"{name}: no runs, skipped", file=sys.stderr)
+            continue
+        table = FIGURES[name]()
+        (RESULTS / f"{name}.md").write_text(table + "\n")
+        print(table + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,57 @@
+"""Every experiment config of the repository's conf/experiment runs (a few frames, tiny budget),
+and its report script reads the runs."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+EXE = str(Path(sys.executable).parent / "torchmocap-track")
+EXPERIMENTS = sorted(p.relative_to(ROOT / "conf" / "experiment").with_suffix("").as_posix()
+                     for p in (ROOT / "conf" / "experiment").rglob("*.yaml"))
+
+
+def test_experiment_configs_exist():
+    assert {"ponsmoll2010/fig8", "ponsmoll2010/fig9a", "ponsmoll2010/fig10",
+            "ponsmoll2010/control"} <= set(EXPERIMENTS)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", EXPERIMENTS)
+def test_every_experiment_config_runs_for_three_frames(name, tmp_path, shared_data):
+    from torchmocap.assembly import tracker_config
+
+    spec = yaml.safe_load((ROOT / "conf" / "experiment" / f"{name}.yaml").read_text())
+    params = spec["hydra"]["sweeper"]["params"]
+    # one seed and one clip; every other choice of the sweep (trackers, data options) runs
+    narrow = [f"{k}={str(v).split(',')[0]}" for k, v in params.items()
+              if k in ("seed", "data/clip")]
+    sweep = tmp_path / "sweep"
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    trackers = str(params.get("tracker", "p")).split(",")
+    n_jobs = 1  # per tracker (the budget below replaces a particle-count sweep)
+    for k, v in params.items():
+        if k not in ("seed", "data/clip", "tracker", "tracker.num_particles"):
+            n_jobs *= len(str(v).split(","))
+    for t in trackers:  # a tiny budget: annealing layers or descent steps
+        local = tracker_config(t).inference._target_.endswith("LocalInference")
+        budget = (["tracker.inference.iterations=2"] if local else
+                  ["tracker.num_particles=12", "tracker.inference.layers=2"])
+        r = subprocess.run([EXE, "-m", f"+experiment={name}", *narrow, f"tracker={t}",
+                            "data.clip.frames=3", *budget,
+                            "++data.scenario_overrides.image_size=[80,60]",
+                            f"sequence_cache={tmp_path / 'cache'}",
+                            f"hydra.sweep.dir={sweep}"],
+                           capture_output=True, text=True, timeout=900, env=env, cwd=ROOT)
+        assert r.returncode == 0, (t, r.stderr[-3000:])
+    metrics = list(sweep.rglob("metrics.json"))
+    assert len(metrics) == n_jobs * len(trackers)
+    for m in metrics:
+        assert json.loads(m.read_text())["frames"] == 3
