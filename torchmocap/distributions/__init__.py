@@ -8,6 +8,14 @@ from torchmocap.distributions.bessel import (
     log_bessel_iv_scaled_power,
     log_bessel_ive_scaled_power,
 )
+from torchmocap.distributions.covariance_scaled import (
+    CovarianceScaledSampler,
+    bhattacharyya_distance,
+    covariance_scaled_sample,
+    hessian_to_covariance,
+    mixture_covariance_scaled_sample,
+    spherical_covariance,
+)
 from torchmocap.distributions.tangent_gaussian import (
     ParameterGaussianNoise,
     TangentGaussianSO3,
@@ -23,17 +31,23 @@ from torchmocap.distributions.von_mises_fisher import (
 )
 
 __all__ = [
+    "CovarianceScaledSampler",
     "ParameterGaussianNoise",
     "TangentGaussianSO3",
     "VonMisesFisher",
     "add_parameter_noise",
     "bessel_iv_ratio",
+    "bhattacharyya_distance",
+    "covariance_scaled_sample",
+    "hessian_to_covariance",
     "kappa_to_angle",
     "kappa_to_tangent_std",
     "log_bessel_iv",
     "log_bessel_iv_scaled_power",
     "log_bessel_ive_scaled_power",
+    "mixture_covariance_scaled_sample",
     "sphere",
+    "spherical_covariance",
     "vmf_log_normalizer",
     "vmf_mean_resultant_length",
 ]

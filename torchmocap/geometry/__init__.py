@@ -1,5 +1,6 @@
 """Rotation and rigid-motion geometry: SO(3)/SE(3) maps, quaternions (w, x, y, z), twists."""
 
+from torchmocap.geometry.flips import RaySphereIntersection, flip_child, ray_sphere_intersections
 from torchmocap.geometry.quaternions import (
     axis_angle_to_quaternion,
     matrix_to_quaternion,
@@ -24,8 +25,10 @@ from torchmocap.geometry.rotations import (
 from torchmocap.geometry.twists import make_transform, revolute_twist, se3_exp, transform_points
 
 __all__ = [
+    "RaySphereIntersection",
     "axis_angle_rotation",
     "axis_angle_to_quaternion",
+    "flip_child",
     "geodesic_angle",
     "hat",
     "make_transform",
@@ -39,6 +42,7 @@ __all__ = [
     "quaternion_to_matrix",
     "random_quaternion",
     "random_rotation_matrix",
+    "ray_sphere_intersections",
     "revolute_twist",
     "se3_exp",
     "so3_exp",

@@ -1,5 +1,20 @@
-"""Inverse kinematics: the analytic sensor-manifold map of Pons-Moll et al. (2010)."""
+"""Inverse kinematics: the analytic sensor-manifold map of Pons-Moll et al. (2010), kinematic flips
+(interpretation trees) and limb IK of Sminchisescu & Triggs (2003)."""
 
+from torchmocap.ik.flip_tree import (
+    MAX_TREE_LINKS,
+    InterpretationTree,
+    flip_patterns,
+    interpretation_tree,
+)
+from torchmocap.ik.limb import (
+    HUMAN31_LIMBS,
+    LimbIK,
+    LimbIKResult,
+    LimbSpec,
+    limb_dofs,
+    solve_limb,
+)
 from torchmocap.ik.sensor_manifold import (
     PAPER_SENSORS,
     ManifoldSolution,
@@ -9,9 +24,19 @@ from torchmocap.ik.sensor_manifold import (
 )
 
 __all__ = [
+    "HUMAN31_LIMBS",
+    "MAX_TREE_LINKS",
     "PAPER_SENSORS",
+    "InterpretationTree",
+    "LimbIK",
+    "LimbIKResult",
+    "LimbSpec",
     "ManifoldSolution",
     "SensorManifold",
     "SensorManifoldError",
+    "flip_patterns",
+    "interpretation_tree",
+    "limb_dofs",
     "sensor_rotations",
+    "solve_limb",
 ]
