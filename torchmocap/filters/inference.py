@@ -61,12 +61,16 @@ class InferenceResult:
         particles: ``(P, D)`` final particles (or the optimised starts).
         log_weights: ``(P,)`` normalised log weights of ``particles`` (None for local descent).
         info: JSON-friendly diagnostics (β and ESS per layer, proposal statistics, timings).
+        carry: state the inference keeps for the next frame (tensors, lists, numbers; e.g. the
+            components of a mixture); the tracker hands it back as ``context.extras["carry"]``
+            and stores it in checkpoints.
     """
 
     estimate: torch.Tensor
     particles: torch.Tensor | None = None
     log_weights: torch.Tensor | None = None
     info: dict[str, Any] = field(default_factory=dict)
+    carry: dict[str, Any] | None = None
 
 
 class Inference(nn.Module):

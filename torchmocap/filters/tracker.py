@@ -68,6 +68,7 @@ class TrackState:
         infos: per-frame diagnostics.
         particles, log_weights: the last frame's particle set ``(P, D)`` and its normalised log
             weights ``(P,)`` (None when the inference keeps none).
+        carry: what the inference keeps for the next frame (``InferenceResult.carry``).
     """
 
     history: torch.Tensor
@@ -77,6 +78,7 @@ class TrackState:
     infos: list = field(default_factory=list)
     particles: torch.Tensor | None = None
     log_weights: torch.Tensor | None = None
+    carry: dict | None = None
 
 
 @dataclass
@@ -244,7 +246,7 @@ class Tracker(nn.Module):
         theta0 = theta0.to(self.dtype)
         g = torch.Generator(device=theta0.device).manual_seed(self.seed)
         info: dict[str, Any] = {"frame": 0, "initial": True}
-        particles = log_w = None
+        particles = log_w = carry = None
         if self.refine_first_frame:
             if frame0 is None:
                 raise ValueError("frame0: required to refine the first frame")
@@ -253,12 +255,12 @@ class Tracker(nn.Module):
             est, res, terms = self._infer(self._context(theta0, frame0), frame0, g)
             info.update(res.info)
             info.update(seconds=time.perf_counter() - t0, energy=terms)
-            theta0, particles, log_w = est, res.particles, res.log_weights
+            theta0, particles, log_w, carry = est, res.particles, res.log_weights, res.carry
         if self.manifold is not None and frame0 is not None and frame0.imu is not None:
             self.manifold.calibrate(theta0, self._sensors(frame0))
         return TrackState(history=theta0[None].clone(), frame=0, generator_state=g.get_state(),
                           estimates=[theta0.clone()], infos=[info], particles=particles,
-                          log_weights=log_w)
+                          log_weights=log_w, carry=carry)
 
     # ------------------------------------------------------------------ one frame
     def step(self, state: TrackState, frame) -> tuple[TrackState, torch.Tensor, dict]:
@@ -270,7 +272,9 @@ class Tracker(nn.Module):
         t0 = time.perf_counter()
         pred = self.predictor(state.history)
         context = self._context(pred, frame)
-        context.extras.update(particles=state.particles, log_weights=state.log_weights)
+        # the previous frame's particle set and whatever the inference carries between frames
+        context.extras.update(particles=state.particles, log_weights=state.log_weights,
+                              carry=state.carry)
         est, res, terms = self._infer(context, frame, g)
         info: dict[str, Any] = {"frame": state.frame + 1, "seconds": time.perf_counter() - t0,
                                 "energy": terms, **res.info}
@@ -282,6 +286,7 @@ class Tracker(nn.Module):
             infos=state.infos + [info],
             particles=None if res.particles is None else res.particles.detach(),
             log_weights=None if res.log_weights is None else res.log_weights.detach(),
+            carry=res.carry,
         )
         return new, est, info
 
