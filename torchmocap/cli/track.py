@@ -103,10 +103,15 @@ def run(cfg: DictConfig, out: Path) -> dict:
         errors = _errors(seq, sk, track.theta)
         metrics.update(errors.pop("summary"))
         arrays.update({k: v.numpy() for k, v in errors.items()})
+        hyp = _hypotheses(seq, sk, track.infos)
+        if hyp:
+            metrics["hypotheses"] = hyp
         if cfg.get("diagnostics", {}).get("energy_vs_truth", False):
             metrics["estimate_energy_below_truth"] = _energy_vs_truth(tracker, seq, track.theta)
     else:
         metrics["silhouette_iou"] = _iou(runtime, seq, track.theta)
+    if seq.joints2d is not None and runtime.rig is not None:
+        metrics["reprojection_px"] = _reprojection(seq, sk, runtime.rig, track.theta)
     for k in ("hull_top_m", "skeleton_scale", "source"):
         if k in seq.meta:
             metrics[k] = seq.meta[k]
@@ -142,8 +147,60 @@ def _errors(seq, sk, theta) -> dict:
     summary["orientation_error_deg"]["per_frame"] = [round(float(v), 4) for v in ori.mean(1)]
     summary["orientation_error_deg"]["per_bone_frame"] = {
         b: [round(float(v), 4) for v in ori[:, k]] for k, b in enumerate(val)}
+    summary["mpjpe_mm"]["per_frame"] = [round(float(v), 3) for v in mp]
     return {"summary": summary, "theta_gt": gt.theta, "orientation_error_deg": ori,
             "mpjpe_mm": mp}
+
+
+def _hypotheses(seq, sk, infos) -> dict:
+    """MPJPE of the top-weighted and of the best of the hypotheses a multi-hypothesis inference
+    keeps per frame (``info["hypotheses"]``, ``info["hypothesis_weights"]``), and their count."""
+    import torch
+
+    from torchmocap.metrics import mpjpe_mm
+
+    top, best, modes = [], [], []
+    for t, info in enumerate(infos):
+        if t == 0 or not isinstance(info, dict) or not info.get("hypotheses"):
+            continue
+        H = torch.as_tensor(info["hypotheses"], dtype=torch.float32)
+        w = torch.as_tensor(info.get("hypothesis_weights") or [1.0] * H.shape[0])
+        truth = seq.ground_truth.positions[t].float()
+        err = mpjpe_mm(sk(H).positions, truth.expand(H.shape[0], -1, -1))
+        top.append(float(err[int(torch.argmax(w))]))
+        best.append(float(err.min()))
+        modes.append(int(H.shape[0]))
+    if not top:
+        return {}
+
+    def stats(v):
+        return {"mean": sum(v) / len(v), "per_frame": [round(x, 3) for x in v]}
+
+    return {"mpjpe_top_mm": stats(top), "mpjpe_best_mm": stats(best),
+            "modes": {"mean": sum(modes) / len(modes), "per_frame": modes}}
+
+
+def _reprojection(seq, sk, rig, theta) -> dict:
+    """2D error (pixels) of the estimate's projected joints against the detections of
+    confidence >= 0.5 (``vs_detections``) and, with ground truth, against the true joints'
+    projections (``vs_truth``), over frames 1..T-1 and every camera."""
+    import torch
+
+    pos = sk(theta[1:]).positions  # (T-1, J, 3)
+    pix, _, vis = rig.project(pos.to(rig.K.dtype))  # (T-1, C, J, 2)
+    det = seq.joints2d[1:].to(pix.dtype)
+    if det.shape[-2] != pix.shape[-2]:
+        return {}
+    ok = (det[..., 2] >= 0.5) & vis
+    out = {}
+    if bool(ok.any()):
+        out["vs_detections"] = float((pix - det[..., :2]).norm(dim=-1)[ok].mean())
+    if seq.ground_truth is not None:
+        tp, _, tvis = rig.project(seq.ground_truth.positions[1:].to(pix.dtype))
+        m = vis & tvis
+        if bool(m.any()):
+            out["vs_truth"] = float((pix - tp).norm(dim=-1)[m].mean())
+    return out
 
 
 def _energy_vs_truth(tracker, seq, theta) -> float:

@@ -19,6 +19,14 @@ from torchmocap.likelihoods.base import (
     WeightedSum,
     check_energy,
 )
+from torchmocap.likelihoods.joints2d import (
+    ROBUST_COSTS,
+    EmptyEvidenceError,
+    Joints2DLikelihood,
+    Joints2DObservation,
+    joints2d_energy,
+    robust_cost,
+)
 from torchmocap.likelihoods.orientation import OrientationLikelihood, orientation_energy
 from torchmocap.likelihoods.silhouette import (
     SilhouetteLikelihood,
@@ -32,20 +40,26 @@ from torchmocap.likelihoods.silhouette import (
 __all__ = [
     "AppearanceLikelihood",
     "ColourObservation",
+    "EmptyEvidenceError",
     "FrameEnergy",
+    "Joints2DLikelihood",
+    "Joints2DObservation",
     "Likelihood",
     "OrientationLikelihood",
     "Poses",
+    "ROBUST_COSTS",
     "SilhouetteLikelihood",
     "SilhouetteObservation",
     "WeightedSum",
     "appearance_energy",
     "body_surface_pattern",
     "check_energy",
+    "joints2d_energy",
     "orientation_energy",
     "prepare_images",
     "prepare_silhouettes",
     "render_capsule_silhouettes",
+    "robust_cost",
     "silhouette_energy",
     "silhouette_iou",
 ]

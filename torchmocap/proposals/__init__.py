@@ -9,6 +9,22 @@ from torchmocap.proposals.base import (
     select_ancestors,
 )
 from torchmocap.proposals.bounds import BOUNDARIES, bound_particles
+from torchmocap.proposals.covariance_scaled import (
+    CovarianceScaledProposal,
+    context_covariances,
+    mode_set,
+)
+from torchmocap.proposals.jumps import (
+    JumpChain,
+    KinematicJumpProposal,
+    KinematicJumps,
+    LimbFlips,
+    chain_votes,
+    kinematic_jumps,
+    limb_flips,
+    parse_chain,
+    select_chains,
+)
 from torchmocap.proposals.manifold import ManifoldProposal
 from torchmocap.proposals.noise import (
     NoSensorNoise,
@@ -21,7 +37,12 @@ from torchmocap.proposals.rejection import RejectionProposal, SensorAngleCriteri
 
 __all__ = [
     "BOUNDARIES",
+    "CovarianceScaledProposal",
     "GaussianDiffusionProposal",
+    "JumpChain",
+    "KinematicJumpProposal",
+    "KinematicJumps",
+    "LimbFlips",
     "ManifoldProposal",
     "NoSensorNoise",
     "PassiveGaussianNoise",
@@ -34,5 +55,12 @@ __all__ = [
     "TangentGaussianNoise",
     "VonMisesFisherNoise",
     "bound_particles",
+    "chain_votes",
+    "context_covariances",
+    "kinematic_jumps",
+    "limb_flips",
+    "mode_set",
+    "parse_chain",
     "select_ancestors",
+    "select_chains",
 ]
