@@ -197,3 +197,87 @@ class TestEstimators:
         assert float(err.max()) < 1e-9  # the sensors are met exactly
         with pytest.raises(ValueError, match="sensors"):
             ManifoldMeanEstimator(m)(parts, w, ProposalContext(th))
+
+
+class TestFidelityOptions:
+    def test_rotation_mean_and_all_joint_groups(self):
+        from torchmocap.geometry import rotation_mean, so3_exp
+
+        g = torch.Generator().manual_seed(0)
+        base = so3_exp(torch.randn(3, generator=g, dtype=F64))
+        d = so3_exp(0.05 * torch.randn(500, 3, generator=g, dtype=F64))
+        R = base @ d
+        assert float((rotation_mean(R) - base).abs().max()) < 0.01
+        w = torch.zeros(500, dtype=F64)
+        w[7] = 1.0
+        assert torch.allclose(rotation_mean(R, w), R[7], atol=1e-12)
+        with pytest.raises(ValueError, match="weights"):
+            rotation_mean(R, -w)
+        sk = human31()
+        x = sk.zero_pose((2,))
+        sh = sk.joint_dofs("l_shoulder")
+        x[0, sh] = torch.tensor([0.3, 1.2, -0.4])
+        x[1, sh] = torch.tensor([0.3, 1.2, 0.4])
+        est = WeightedMeanEstimator(sk, rotation_groups="all")(x, torch.tensor([0.5, 0.5]))
+        assert est[sh].tolist() == pytest.approx([0.3, 1.2, 0.0], abs=0.02)
+        with pytest.raises(ValueError, match="rotation_groups"):
+            WeightedMeanEstimator(sk, rotation_groups="some")
+
+    def test_manifold_mean_of_the_particles_noisy_sensors(self):
+        """Eq. 18: with sensors='particles' the estimate keeps the particles' sensor draws."""
+        sk = human31().double()
+        m = SensorManifold(sk).double()
+        th = sk.zero_pose(dtype=F64)
+        th[sk.joint_dofs("l_elbow")] = 0.5
+        meas = m.sensor_orientations(th)
+        tilted = th.clone()
+        tilted[sk.joint_dofs("l_shoulder")] = torch.tensor([0.2, 0.1, 0.0], dtype=F64)
+        parts = tilted.expand(10, 31).clone()  # every particle drew the same tilted sensors
+        w = torch.full((10,), 0.1, dtype=F64)
+        ctx = ProposalContext(th, sensors=meas)
+        from torchmocap.filters import ManifoldMeanEstimator
+
+        e_meas = ManifoldMeanEstimator(m, "measured")(parts, w, ctx)
+        e_part = ManifoldMeanEstimator(m, "particles")(parts, w, ctx)
+        assert torch.allclose(e_part, tilted, atol=1e-9)
+        assert not torch.allclose(e_meas, tilted, atol=1e-3)  # snaps back to the measurement
+        with pytest.raises(ValueError, match="sensors"):
+            ManifoldMeanEstimator(m, "mean")
+
+    def test_propagation_and_motion_scaled_start(self):
+        prop = RecordingProposal(torch.full((2,), 0.1))
+        last = torch.zeros(2)
+        pred = torch.tensor([0.5, 0.0])
+        parts = torch.randn(30, 2, generator=torch.Generator().manual_seed(0))
+        ctx = ProposalContext(pred.clone(), extras={"last_estimate": last, "particles": parts,
+                                                    "log_weights": torch.zeros(30)})
+        AnnealedInference(layers=2, propagate="particles", motion_scale=1.0)(
+            _quadratic(torch.zeros(2)), prop, WeightedMeanEstimator(), ctx, 30,
+            torch.Generator().manual_seed(1))
+        std0, _, shape0 = prop.calls[0]
+        assert shape0 == (30, 2)  # layer 0 starts from the previous particle set
+        assert std0.tolist() == pytest.approx([math.hypot(0.1, 0.5), 0.1], rel=1e-5)
+        with pytest.raises(ValueError, match="propagate"):
+            AnnealedInference(propagate="none")
+
+    def test_spread_floor(self):
+        prop = GaussianDiffusionProposal(torch.full((2,), 0.2))
+        x = torch.zeros(50, 2, dtype=F64)  # a collapsed cloud
+        std = SpreadDiffusion(floor=0.25)(x, 5, 15, prop)["std"]
+        assert std.tolist() == pytest.approx([0.05, 0.05])
+
+
+def test_joint_limit_energy():
+    from torchmocap.likelihoods import JointLimitLikelihood, Poses
+
+    sk = human31()
+    lik = JointLimitLikelihood(sk, scale_deg=5.0)
+    th = sk.zero_pose((3,))
+    e = sk.dof_index("l_elbow_flex")
+    th[1, e] = float(sk.upper[e]) + math.radians(10.0)
+    th[2, e] = float(sk.lower[e]) - math.radians(5.0)
+    v = lik.energy(Poses(th, sk), None)
+    assert v.tolist() == pytest.approx([0.0, 4.0, 1.0], rel=1e-4)
+    assert lik.requires == ()
+    with pytest.raises(ValueError, match="scale_deg"):
+        JointLimitLikelihood(sk, scale_deg=0)

@@ -238,3 +238,48 @@ class TestSensorNoise:
         assert float(out[:, [0, 2, 4]].abs().max()) == 0
         assert torch.allclose(out[:, [1, 3, 5]].std(0), torch.full((3,), math.radians(2.0),
                                                                     dtype=F64), rtol=0.03)
+
+
+class TestDroppedSamples:
+    def test_feature_dropped_sensor_follows_the_ancestor(self, setup):
+        """A dropped (held, stale) sample carries no information: its passive joint follows
+        the particle's ancestor instead of snapping to the stale orientation; the valid sensors
+        are still met exactly."""
+        sk, m, th = setup
+        stale = th.clone()
+        stale[sk.joint_dofs("l_shoulder")] += torch.tensor([0.6, -0.4, 0.5], dtype=F64)
+        S = m.sensor_orientations(stale)  # every sensor reads the stale pose ...
+        S[[0, 2, 3, 4]] = m.sensor_orientations(th)[[0, 2, 3, 4]]  # ... but l_forearm
+        valid = torch.tensor([True, False, True, True, True])
+        prop = ManifoldProposal(m, active_std=0.0, noise=NoSensorNoise(),
+                                dropped_spread_deg=2.0)
+        out = prop.sample(ProposalContext(previous=th, sensors=S, sensor_valid=valid), 400,
+                          torch.Generator().manual_seed(9))
+        got = m.bone_orientations(out.particles)
+        want = m.bone_orientations(th).expand_as(got)
+        err = geodesic_angle(got, want)
+        assert float(err[:, [0, 2, 3, 4]].max()) < 1e-9
+        med = math.degrees(float(err[:, 1].median()))
+        assert 1.0 < med < 5.0  # spread around the ancestor (2 deg per axis), not ~40 deg
+        assert out.stats["dropped_sensors"] == 1
+        # without the flag the stale value is obeyed
+        out2 = prop.sample(ProposalContext(previous=th, sensors=S), 50,
+                           torch.Generator().manual_seed(9))
+        stale_err = geodesic_angle(m.bone_orientations(out2.particles)[:, 1],
+                                   m.bone_orientations(stale)[1].expand(50, 3, 3))
+        assert float(stale_err.max()) < 1e-9
+
+    def test_feature_limit_resampling(self, setup):
+        sk, m, th = setup
+        g = torch.Generator().manual_seed(3)
+        keep = ManifoldProposal(m, rotation_std_deg=25.0, noise=VonMisesFisherNoise(50.0))
+        res = ManifoldProposal(m, rotation_std_deg=25.0, noise=VonMisesFisherNoise(50.0),
+                               limits="resample", limit_tries=6)
+        ctx = ProposalContext(previous=th, sensors=m.sensor_orientations(th))
+        a = keep.sample(ctx, 2000, g)
+        b = res.sample(ctx, 2000, g)
+        assert a.stats["within_limits"] < 0.99  # the wide draw leaves the limits ...
+        assert b.stats["within_limits"] > a.stats["within_limits"]  # ... redraws fix most
+        assert b.stats["resampled"] > 0
+        with pytest.raises(ValueError, match="limits"):
+            ManifoldProposal(m, limits="clamp")

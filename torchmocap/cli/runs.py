@@ -27,7 +27,10 @@ from typing import Any
 from hydra.experimental.callback import Callback
 
 __all__ = [
+    "RunLockError",
     "SweepStatus",
+    "acquire_lock",
+    "release_lock",
     "code_fingerprint",
     "config_fingerprint",
     "load_sequence",
@@ -37,6 +40,7 @@ __all__ = [
 ]
 
 FAILURE_FILE = "failure.json"
+LOCK_FILE = ".torchmocap.lock"
 _failures: list[str] = []  # this process's sweep failures (filled by SweepStatus)
 
 
@@ -176,18 +180,84 @@ def write_failure(out: Path, error: BaseException, fingerprint: str | None, comm
     return line
 
 
+class RunLockError(RuntimeError):
+    """Another live process is writing into the same run or sweep directory."""
+
+
+def acquire_lock(directory: Path) -> Path:
+    """Create ``directory/.torchmocap.lock`` holding this process's id; refuse when another
+    live process holds it (a lock left by a dead process is taken over)."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    lock = directory / LOCK_FILE
+    for _ in range(2):
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            try:
+                pid = int(lock.read_text().strip() or 0)
+            except (OSError, ValueError):
+                pid = 0
+            if pid and pid != os.getpid() and _alive(pid):
+                raise RunLockError(f"{directory} is in use by process {pid}; choose another "
+                                   "run directory or wait for it to finish") from None
+            lock.unlink(missing_ok=True)
+            continue
+        with os.fdopen(fd, "w") as f:
+            f.write(str(os.getpid()))
+        return lock
+    raise RunLockError(f"{directory}: cannot take the lock {lock}")
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def release_lock(directory: Path) -> None:
+    lock = Path(directory) / LOCK_FILE
+    try:
+        if int(lock.read_text().strip() or 0) == os.getpid():
+            lock.unlink()
+    except (OSError, ValueError):
+        pass
+
+
 class SweepStatus(Callback):
-    """Hydra callback: at the end of a multirun, count the jobs of *this* sweep that wrote a
-    ``failure.json`` and report them; the command then exits with status 2."""
+    """Hydra callback: guards run and sweep directories with a lock (two processes never mix
+    their records in one directory: the second is refused before Hydra writes anything), and at
+    the end of a multirun counts the jobs of *this* sweep that wrote a ``failure.json`` and
+    reports them; the command then exits with status 2."""
 
     def __init__(self) -> None:
         self._start = time.time()
 
+    @staticmethod
+    def _guard(directory: str) -> None:
+        try:
+            acquire_lock(Path(directory))
+        except RunLockError as e:
+            print(f"torchmocap: error: {e}", file=sys.stderr)
+            sys.exit(2)
+
+    def on_run_start(self, config, **kwargs) -> None:
+        self._guard(str(config.hydra.run.dir))
+
+    def on_run_end(self, config, **kwargs) -> None:
+        release_lock(Path(str(config.hydra.run.dir)))
+
     def on_multirun_start(self, config, **kwargs) -> None:
         self._start = time.time() - 1.0
         _failures.clear()
+        self._guard(str(config.hydra.sweep.dir))
 
     def on_multirun_end(self, config, **kwargs) -> None:
+        release_lock(Path(str(config.hydra.sweep.dir)))
         root = Path(str(config.hydra.sweep.dir))
         failed = sorted(str(p.parent) for p in root.rglob(FAILURE_FILE)
                         if p.stat().st_mtime >= self._start)

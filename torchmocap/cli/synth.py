@@ -93,26 +93,35 @@ def _hydra_main(cfg: DictConfig) -> None:
     import json
 
     from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
 
     from torchmocap.cameras import CameraError
+    from torchmocap.cli.runs import write_failure
     from torchmocap.data import MissingModalityError, ScenarioError, SynthesisError
     from torchmocap.io import MotionFormatError, SkeletonMapError
 
-    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    hc = HydraConfig.get()
+    out_dir = Path(hc.runtime.output_dir)
+    (out_dir / "failure.json").unlink(missing_ok=True)
     try:
         info = run(cfg, out_dir)
     except (MotionFormatError, SkeletonMapError, ScenarioError, SynthesisError,
             CameraError, MissingModalityError, FileNotFoundError, KeyError, ValueError) as e:
-        msg = str(e.args[0]) if isinstance(e, KeyError) and e.args else str(e)
-        print(f"torchmocap-synth: error: {msg.splitlines()[0] if msg else type(e).__name__}",
-              file=sys.stderr)
+        line = write_failure(out_dir, e, None, "torchmocap-synth")
+        print(f"torchmocap-synth: error: {line}", file=sys.stderr)
+        if hc.mode == RunMode.MULTIRUN:  # the other jobs of the sweep go on
+            return
         sys.exit(2)
     print(json.dumps(info))
 
 
 def main() -> None:
-    """Console entry point."""
+    """Console entry point (exit status 2 when the run, or any job of a sweep, failed)."""
+    from torchmocap.cli.runs import sweep_failed
+
     _hydra_main()
+    if sweep_failed():
+        sys.exit(2)
 
 
 if __name__ == "__main__":

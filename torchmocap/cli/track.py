@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -67,7 +66,10 @@ def run(cfg: DictConfig, out: Path) -> dict:
         print(f"torchmocap-track: {out} is complete and up to date (fingerprint {fingerprint}); "
               "skipped", file=sys.stderr)
         return done
-    (out / "failure.json").unlink(missing_ok=True)
+    # a rerun in place: the old records must not outlive this run's config
+    for stale in ("failure.json", "metrics.json"):
+        (out / stale).unlink(missing_ok=True)
+    _validate_tracker(cfg)  # settings errors before any loading, fitting or synthesis
     seq = load_sequence(cfg, min_frames=2)
     runtime = Runtime.from_sequence(seq)
     try:
@@ -79,8 +81,11 @@ def run(cfg: DictConfig, out: Path) -> dict:
             raise type(e)(f"{e} (this data is tracked with tracker={hint})") from e
         raise
     ckpt = cfg.get("checkpoint")
-    if ckpt:
-        ckpt = str(ckpt) if os.path.isabs(str(ckpt)) else str(out / str(ckpt))
+    if ckpt:  # relative: to the working directory of a single run, to each job's directory
+        ckpt = Path(str(ckpt)).expanduser()
+        if not ckpt.is_absolute():
+            ckpt = (out if _multirun() else Path.cwd()) / ckpt
+        ckpt = str(ckpt)
     track = tracker.run(seq, progress=bool(cfg.get("progress", True)), checkpoint=ckpt,
                         checkpoint_every=int(cfg.get("checkpoint_every", 10)),
                         fingerprint=f"{fingerprint}-{_sequence_fingerprint(seq)}")
@@ -123,6 +128,32 @@ def run(cfg: DictConfig, out: Path) -> dict:
         _write_plots(out, seq, runtime, track.theta, arrays, int(cfg.get("overlays", 3)))
     write_json_atomic(metrics, out / "metrics.json")
     return metrics
+
+
+def _multirun() -> bool:
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+
+
+def _validate_tracker(cfg) -> None:
+    """Build the tracker once against a stand-in subject (human31, four cameras, the paper's
+    five tracking IMUs): a bad setting fails in a fraction of a second, before the data is
+    loaded, fitted and synthesised."""
+    from torchmocap.assembly import Runtime, build_tracker
+    from torchmocap.body import CapsuleBody
+    from torchmocap.cameras import make_ring_rig
+    from torchmocap.ik import SensorManifold
+    from torchmocap.skeleton import human31
+
+    seed = cfg.get("seed")
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise ValueError(f"seed: expected an integer, got {seed!r}")
+    sk = human31()
+    stand_in = Runtime(skeleton=sk, body=CapsuleBody(sk).float(), rig=make_ring_rig(4).float(),
+                       manifold=SensorManifold(sk))
+    build_tracker(cfg.tracker, stand_in, seed=seed)
 
 
 def _validation_bones(seq) -> list[str]:
@@ -184,7 +215,6 @@ def _reprojection(seq, sk, rig, theta) -> dict:
     """2D error (pixels) of the estimate's projected joints against the detections of
     confidence >= 0.5 (``vs_detections``) and, with ground truth, against the true joints'
     projections (``vs_truth``), over frames 1..T-1 and every camera."""
-    import torch
 
     pos = sk(theta[1:]).positions  # (T-1, J, 3)
     pix, _, vis = rig.project(pos.to(rig.K.dtype))  # (T-1, C, J, 2)
@@ -252,6 +282,14 @@ def _diagnostics(infos: list) -> dict:
     if energies:
         out["energy_mean"] = {k: sum(e[k] for e in energies) / len(energies)
                               for k in energies[0]}
+    missing: dict[str, int] = {}
+    for i in tracked:
+        for k in i.get("no_evidence", []):
+            missing[k] = missing.get(k, 0) + 1
+    out["frames_without_evidence"] = missing
+    if missing:
+        print("torchmocap-track: warning: frames without usable evidence (uninformative): "
+              + ", ".join(f"{k} {n}" for k, n in missing.items()), file=sys.stderr)
     if infos and infos[0].get("seconds") is not None:
         out["seconds_first_frame"] = infos[0]["seconds"]
         if "seconds_per_round" in infos[0]:

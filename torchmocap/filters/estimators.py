@@ -5,10 +5,14 @@ normalised ``weights`` and the frame's :class:`~torchmocap.proposals.ProposalCon
 ``previous`` is the prediction, its ``sensors`` the measured tracking-sensor orientations).
 
 * :class:`WeightedMeanEstimator` — ``Σ_i w_i θ_i``; with ``rotation_groups`` the root rotation
-  (or any 3-coordinate rotation) is averaged on SO(3) (chordal mean), not as angles;
-* :class:`ManifoldMeanEstimator` — ``g^{-1}(Σ_i w_i x_a^i, measured sensors)``: the weighted mean
-  of the active coordinates mapped back with the measured (noise-free) sensors, so the estimate
-  lies on the sensor manifold;
+  (``"root"``) or every 3-DoF joint (``"all"``) is averaged on SO(3) (chordal mean), not as
+  angles;
+* :class:`ManifoldMeanEstimator` — ``g^{-1}(Σ_i w_i x_a^i, z)``: the weighted mean of the active
+  coordinates mapped back through the sensor manifold, with ``z`` either the measured sensors
+  (``sensors="measured"``) or the weighted SO(3) mean of the sensor-bone orientations the
+  particles themselves carry (``sensors="particles"``: Pons-Moll eq. 18, whose particles are
+  ``g^{-1}(x_a^i, z~^i)`` with their own noisy sensors ``z~^i`` — the estimate's passive joints
+  may then deviate from a misaligned measurement, Fig. 4b);
 * :class:`BestParticleEstimator` — the highest-weight particle.
 """
 
@@ -45,21 +49,36 @@ class WeightedMeanEstimator(Estimator):
     """Weighted mean of the particles (eq. 18).
 
     Args:
-        skeleton: when given with ``rotation_groups=True``, the root rotation's three angles are
-            averaged on SO(3) (:func:`~torchmocap.filters.annealed.rotation_mean_fn`).
-        rotation_groups: see ``skeleton``.
+        skeleton: the model (needed for ``rotation_groups``).
+        rotation_groups: ``False``/``"none"``: every coordinate averaged as a number;
+            ``True``/``"root"``: the root rotation's three angles averaged on SO(3);
+            ``"all"``: every joint with three rotation axes (root, spine, shoulders, hips) —
+            the angles of each are mapped to a rotation, averaged
+            (:func:`~torchmocap.filters.annealed.rotation_mean_fn`) and decomposed back next to
+            the highest-weight particle.
     """
 
-    def __init__(self, skeleton=None, rotation_groups: bool = False) -> None:
+    MODES = ("none", "root", "all")
+
+    def __init__(self, skeleton=None, rotation_groups: bool | str = False) -> None:
         super().__init__()
+        mode = {False: "none", True: "root"}.get(rotation_groups, rotation_groups) \
+            if isinstance(rotation_groups, bool) else rotation_groups
+        if mode not in self.MODES:
+            raise ValueError(f"rotation_groups: expected a bool or one of {self.MODES}, got "
+                             f"{rotation_groups!r}")
+        self.rotation_groups = mode
         self._mean = None
-        if rotation_groups:
+        if mode != "none":
             if skeleton is None:
-                raise ValueError("skeleton: required for rotation_groups=True")
+                raise ValueError(f"skeleton: required for rotation_groups={rotation_groups!r}")
             from torchmocap.filters.annealed import rotation_mean_fn
             from torchmocap.filters.prediction import skeleton_rotation_groups
 
-            self._mean = rotation_mean_fn(skeleton_rotation_groups(skeleton))
+            joints = None if mode == "root" else [
+                n for j, n in enumerate(skeleton.joint_names)
+                if len(skeleton.joint_axes[j]) == 3]
+            self._mean = rotation_mean_fn(skeleton_rotation_groups(skeleton, joints))
 
     def forward(self, particles, weights, context=None):
         _check(particles, weights)
@@ -69,26 +88,53 @@ class WeightedMeanEstimator(Estimator):
 
 
 class ManifoldMeanEstimator(Estimator):
-    """``g^{-1}(Σ_i w_i x_a^i, measured sensors)`` (active-coordinate mean, mapped back).
+    """``g^{-1}(Σ_i w_i x_a^i, z)``: the active-coordinate mean, mapped back on the manifold.
 
     Args:
         manifold: the :class:`~torchmocap.ik.SensorManifold` of the tracking sensors.
+        sensors: ``"measured"`` — ``z`` = this frame's measured sensor orientations
+            (``context.sensors``); ``"particles"`` — ``z`` = the weighted SO(3) mean of the
+            particles' own sensor-bone orientations (eq. 18: each particle carries its noisy
+            sensor draw, so the estimate stays on the manifold of the noisy sensors it came
+            from instead of snapping back to a possibly misaligned measurement).
     """
 
-    def __init__(self, manifold) -> None:
+    SENSORS = ("measured", "particles")
+
+    def __init__(self, manifold, sensors: str = "measured") -> None:
         super().__init__()
+        if sensors not in self.SENSORS:
+            raise ValueError(f"sensors: expected one of {self.SENSORS}, got {sensors!r}")
         self.manifold = manifold
+        self.sensors = sensors
 
     def forward(self, particles, weights, context=None):
+        from torchmocap.geometry import rotation_mean
+
         _check(particles, weights)
+        m = self.manifold
+        xa = (weights.to(particles.dtype)[:, None] * m(particles)).sum(0)
+        ref = context.previous if context is not None and context.previous.dim() == 1 else None
+        valid = None if context is None else context.sensor_valid
+        if self.sensors == "particles" or (valid is not None and not bool(valid.all())):
+            bones = rotation_mean(m.bone_orientations(particles), weights)  # (S, 3, 3) R_TB
+            if self.sensors == "measured":  # only the dropped samples come from the particles
+                from torchmocap.ik.sensor_manifold import sensor_rotations
+
+                meas = sensor_rotations(context.sensors, m.num_sensors).to(bones) \
+                    @ m.sensor_to_bone.to(bones)
+                keep = valid.bool().to(bones.device)[:, None, None]
+                bones = torch.where(keep, meas, bones)
+            return m.inverse(xa[None], bones, reference=ref, compute_residual=False,
+                             sensor_frame=False).theta[0]
         if context is None or context.sensors is None:
             raise ValueError("context.sensors: the manifold estimator needs this frame's "
                              "sensor orientations")
-        m = self.manifold
-        xa = (weights.to(particles.dtype)[:, None] * m(particles)).sum(0)
-        ref = context.previous if context.previous.dim() == 1 else None
         return m.inverse(xa[None], context.sensors, reference=ref,
                          compute_residual=False).theta[0]
+
+    def extra_repr(self) -> str:
+        return f"sensors={self.sensors!r}"
 
 
 class BestParticleEstimator(Estimator):

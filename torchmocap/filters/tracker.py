@@ -123,12 +123,16 @@ class Tracker(nn.Module):
         refine_first_frame: run the inference on frame 0 too, from the given initial pose (or
             a set of candidate poses ``(K, D)``) — for fits of a real frame from a rough start.
         clamp_estimate: clamp each estimate into the joint limits.
+        body_fit: optional callable ``(theta0, frame0) -> info`` run at :meth:`init` after the
+            first pose is known, e.g. :class:`~torchmocap.filters.body_fit.SilhouetteBodyFit`
+            (fits the capsule radii to the first frame; its body is saved in checkpoints).
     """
 
     def __init__(self, skeleton, predictor, proposal: Proposal, likelihood: Likelihood,
                  inference: Inference, estimator: Estimator, num_particles: int = 200,
                  manifold=None, seed: int = 0, name: str = "tracker",
-                 refine_first_frame: bool = False, clamp_estimate: bool = True) -> None:
+                 refine_first_frame: bool = False, clamp_estimate: bool = True,
+                 body_fit=None) -> None:
         super().__init__()
         if isinstance(num_particles, bool) or not isinstance(num_particles, int) \
                 or num_particles < 1:
@@ -149,6 +153,9 @@ class Tracker(nn.Module):
         self.name = str(name)
         self.refine_first_frame = bool(refine_first_frame)
         self.clamp_estimate = bool(clamp_estimate)
+        if body_fit is not None and not callable(body_fit):
+            raise TypeError(f"body_fit: expected a callable, got {type(body_fit).__name__}")
+        self.body_fit = body_fit
         self.dtype = skeleton.offsets.dtype
 
     # ------------------------------------------------------------------ observations
@@ -225,6 +232,9 @@ class Tracker(nn.Module):
                                 self.skeleton.lower.to(est.dtype))
         with torch.no_grad():
             terms = {k: float(v[0]) for k, v in energy.terms(est[None]).items()}
+        missing = energy.missing_evidence()
+        if missing:  # terms without usable evidence in this frame (uninformative)
+            res.info["no_evidence"] = list(missing)
         return est, res, terms
 
     # ------------------------------------------------------------------ state
@@ -256,6 +266,8 @@ class Tracker(nn.Module):
             info.update(res.info)
             info.update(seconds=time.perf_counter() - t0, energy=terms)
             theta0, particles, log_w, carry = est, res.particles, res.log_weights, res.carry
+        if self.body_fit is not None and frame0 is not None:
+            info["body_fit"] = self.body_fit(theta0, frame0)
         if self.manifold is not None and frame0 is not None and frame0.imu is not None:
             self.manifold.calibrate(theta0, self._sensors(frame0))
         return TrackState(history=theta0[None].clone(), frame=0, generator_state=g.get_state(),
@@ -274,7 +286,7 @@ class Tracker(nn.Module):
         context = self._context(pred, frame)
         # the previous frame's particle set and whatever the inference carries between frames
         context.extras.update(particles=state.particles, log_weights=state.log_weights,
-                              carry=state.carry)
+                              carry=state.carry, last_estimate=state.history[-1])
         est, res, terms = self._infer(context, frame, g)
         info: dict[str, Any] = {"frame": state.frame + 1, "seconds": time.perf_counter() - t0,
                                 "energy": terms, **res.info}
@@ -345,7 +357,10 @@ class Tracker(nn.Module):
                    "state": dataclasses.asdict(state), "name": self.name, "seed": self.seed,
                    "fingerprint": fingerprint,
                    "sensor_to_bone": None if self.manifold is None
-                   else self.manifold.sensor_to_bone.detach().clone()}
+                   else self.manifold.sensor_to_bone.detach().clone(),
+                   "body": None if getattr(self.body_fit, "body", None) is None else
+                   {k: v.detach().clone() for k, v in self.body_fit.body.state_dict().items()
+                    if k in ("radii", "end_shrink")}}
         tmp = f"{path}.tmp"
         torch.save(payload, tmp)
         os.replace(tmp, path)
@@ -377,6 +392,10 @@ class Tracker(nn.Module):
                                   f"sequence only {num_frames}")
         if self.manifold is not None and payload["sensor_to_bone"] is not None:
             self.manifold.sensor_to_bone = payload["sensor_to_bone"]
+        body = getattr(self.body_fit, "body", None)
+        if body is not None and payload.get("body"):
+            for k, v in payload["body"].items():
+                getattr(body, k).copy_(v)
         return state
 
     def extra_repr(self) -> str:

@@ -20,6 +20,7 @@ __all__ = [
     "axis_angle_rotation",
     "geodesic_angle",
     "random_rotation_matrix",
+    "rotation_mean",
 ]
 
 
@@ -112,3 +113,34 @@ def random_rotation_matrix(
     return quaternion_to_matrix(random_quaternion(n, generator, dtype, device))
 
 
+
+
+def rotation_mean(R: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
+    """Weighted chordal mean of rotations over the first dim: ``(P, *, 3, 3) -> (*, 3, 3)``.
+
+    ``proj_SO(3)(Σ_i w_i R_i)`` (the closest rotation to the weighted arithmetic mean, by SVD with
+    the determinant fixed), computed in float64. ``weights (P,)`` are normalised here (default
+    uniform). Averaging Euler angles instead fails at their seams and near gimbal lock.
+
+    Example:
+        >>> R = so3_exp(torch.tensor([[0.0, 0.0, 0.1], [0.0, 0.0, 0.3]]))
+        >>> bool(torch.allclose(rotation_mean(R), so3_exp(torch.tensor([0.0, 0.0, 0.2])),
+        ...                     atol=1e-6))
+        True
+    """
+    check_last_dims(R, (3, 3), "R")
+    P = R.shape[0]
+    if weights is None:
+        weights = torch.ones(P, dtype=torch.float64, device=R.device)
+    if weights.shape != (P,):
+        raise ValueError(f"weights: expected shape ({P},), got {tuple(weights.shape)}")
+    w = weights.to(torch.float64)
+    if not bool(torch.isfinite(w).all()) or bool((w < 0).any()) or not float(w.sum()) > 0:
+        raise ValueError("weights: expected finite values >= 0 with a positive sum")
+    w = w / w.sum()
+    M = (w.reshape(P, *([1] * (R.dim() - 1))) * R.to(torch.float64)).sum(0)
+    U, _, Vh = torch.linalg.svd(M)
+    d = torch.sign(torch.linalg.det(U @ Vh))
+    fix = torch.ones(*M.shape[:-2], 3, dtype=M.dtype, device=M.device)
+    fix[..., 2] = torch.where(d == 0, torch.ones_like(d), d)
+    return ((U * fix[..., None, :]) @ Vh).to(R.dtype)

@@ -27,6 +27,7 @@ from torchmocap.likelihoods.joints2d import (
     joints2d_energy,
     robust_cost,
 )
+from torchmocap.likelihoods.limits import JointLimitLikelihood, limit_excess
 from torchmocap.likelihoods.orientation import OrientationLikelihood, orientation_energy
 from torchmocap.likelihoods.silhouette import (
     SilhouetteLikelihood,
@@ -35,6 +36,7 @@ from torchmocap.likelihoods.silhouette import (
     render_capsule_silhouettes,
     silhouette_energy,
     silhouette_iou,
+    soft_capsule_silhouettes,
 )
 
 __all__ = [
@@ -43,6 +45,7 @@ __all__ = [
     "EmptyEvidenceError",
     "FrameEnergy",
     "Joints2DLikelihood",
+    "JointLimitLikelihood",
     "Joints2DObservation",
     "Likelihood",
     "OrientationLikelihood",
@@ -55,6 +58,7 @@ __all__ = [
     "body_surface_pattern",
     "check_energy",
     "joints2d_energy",
+    "limit_excess",
     "orientation_energy",
     "prepare_images",
     "prepare_silhouettes",
@@ -62,4 +66,5 @@ __all__ = [
     "robust_cost",
     "silhouette_energy",
     "silhouette_iou",
+    "soft_capsule_silhouettes",
 ]

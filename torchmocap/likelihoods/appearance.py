@@ -5,7 +5,8 @@ bone) is projected into every view; each point's colour is read where it faces t
 lies inside the image. A correct pose sees the same surface point with the same colour in all
 views that see it; a wrong pose mixes body and background. ``V_app`` is the mean (over points
 seen by at least two views) of the across-view colour variance, in units of the full colour
-range squared (so in [0, 0.25]). Self-occlusion by other body parts is not modelled.
+range squared (so in [0, 0.25]); a pose none of whose points is seen by two views gets 0.25.
+Self-occlusion by other body parts is not modelled.
 Shapes: ``P`` particles, ``C`` views, ``B`` capsules, ``N`` surface points.
 """
 
@@ -144,7 +145,11 @@ def appearance_energy(kin, body, pattern: dict, rig, images,
     # across-view variance per point, averaged over the channels: E|c|^2 - |E c|^2
     var = ((s2 - (s1 * s1).sum(0) * inv) * inv / 3).clamp_min_(0).reshape(P, -1)
     seen = (cnt >= 2).to(dtype).reshape(P, -1)
-    return (var * seen).sum(-1) / seen.sum(-1).clamp_min(1)
+    n_seen = seen.sum(-1)
+    v = (var * seen).sum(-1) / n_seen.clamp_min(1)
+    # a pose with no surface point seen by two views (out of the images) has no colour
+    # evidence: it gets the largest variance (0.25), not a perfect 0
+    return torch.where(n_seen > 0, v, torch.full_like(v, 0.25))
 
 
 class AppearanceLikelihood(Likelihood):
@@ -174,6 +179,10 @@ class AppearanceLikelihood(Likelihood):
         if getattr(frame, "view_dropped", None) is not None:
             view_valid = ~frame.view_dropped.bool()
         return prepare_images(frame.images, self.body.radii.dtype), view_valid
+
+    def evidence(self, observation) -> bool:
+        _, view_valid = observation
+        return view_valid is None or int(view_valid.sum()) >= 2
 
     def energy(self, poses, observation) -> torch.Tensor:
         colours, view_valid = observation

@@ -13,7 +13,11 @@ A term is an ``nn.Module`` with
   planes, sensor rotations); the default returns the frame itself;
 - ``energy(poses, observation) -> (P,)``: the energy of every particle, where ``poses`` is a
   :class:`Poses` — forward kinematics and capsule endpoints are computed once per evaluation and
-  shared by all terms.
+  shared by all terms;
+- ``evidence(observation) -> bool``: whether the frame holds usable evidence for the term (all
+  views dropped, every sensor sample lost: no). Without evidence a term returns the same
+  uninformative energy for every particle — never a "perfect" 0 — and the tracker reports the
+  frame.
 
 :class:`WeightedSum` combines terms with weights from the config (``V = Σ_k w_k V_k``; a term of
 weight 0 is neither evaluated nor required). :class:`FrameEnergy` binds a likelihood to one
@@ -115,6 +119,10 @@ class Likelihood(nn.Module):
         """Energy ``(P,)`` of ``poses`` given the prepared ``observation``."""
         raise NotImplementedError(f"{type(self).__name__} must implement energy()")
 
+    def evidence(self, observation: Any) -> bool:
+        """Whether ``observation`` holds usable evidence for this term (default: yes)."""
+        return True
+
     def forward(self, poses: Poses, observation: Any) -> torch.Tensor:
         return self.energy(poses, observation)
 
@@ -188,6 +196,14 @@ class WeightedSum(Likelihood):
     def prepare(self, frame: Any) -> dict[str, Any]:
         return {k: self.terms[k].prepare(frame) for k in self.active_terms()}
 
+    def evidence(self, observation: Mapping[str, Any]) -> bool:
+        """True when at least one active term has evidence (see :meth:`missing_evidence`)."""
+        return len(self.missing_evidence(observation)) < len(self.active_terms())
+
+    def missing_evidence(self, observation: Mapping[str, Any]) -> list[str]:
+        """Names of the active terms without usable evidence in this frame."""
+        return [k for k in self.active_terms() if not self.terms[k].evidence(observation[k])]
+
     def term_energies(self, poses: Poses, observation: Mapping[str, Any]
                       ) -> dict[str, torch.Tensor]:
         """Unweighted energy ``(P,)`` of every active term."""
@@ -226,6 +242,13 @@ class FrameEnergy:
             raise ValueError(f"theta: expected shape (P, D), got {tuple(theta.shape)}")
         v = self.likelihood.energy(Poses(theta, self.skeleton), self.observation)
         return check_energy(v, theta.shape[0], f"likelihood {type(self.likelihood).__name__}")
+
+    def missing_evidence(self) -> list[str]:
+        """Terms (names) without usable evidence in the bound frame."""
+        lik = self.likelihood
+        if isinstance(lik, WeightedSum):
+            return lik.missing_evidence(self.observation)
+        return [] if lik.evidence(self.observation) else [type(lik).__name__]
 
     def terms(self, theta: torch.Tensor) -> dict[str, torch.Tensor]:
         """Per-term unweighted energies ``{name: (P,)}`` (a single term is named ``energy``)."""

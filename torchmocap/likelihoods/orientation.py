@@ -9,6 +9,8 @@ Shapes: ``P`` particles, ``S`` sensors.
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from torchmocap.geometry import geodesic_angle
@@ -21,8 +23,9 @@ def orientation_energy(bone_rotations: torch.Tensor, offsets: torch.Tensor,
                        measured: torch.Tensor, valid: torch.Tensor | None = None,
                        power: int = 2) -> torch.Tensor:
     """``V_ori (P,)`` from model bone frames ``(P, S, 3, 3)``, offsets ``R_BS (S, 3, 3)`` and
-    measured ``R_TS (S, 3, 3)``; ``valid (S,)`` masks dropped samples; ``power`` 1 (linear in
-    the angle) or 2 (squared)."""
+    measured ``R_TS (S, 3, 3)``; ``valid (S,)`` masks dropped samples (with none valid every pose
+    gets the largest cost, ``pi^power``: no evidence is not a perfect match); ``power`` 1
+    (linear in the angle) or 2 (squared)."""
     if bone_rotations.shape[-3:] != measured.shape[-3:]:
         raise ValueError(f"measured: expected shape {tuple(bone_rotations.shape[-3:])}, got "
                          f"{tuple(measured.shape)}")
@@ -34,7 +37,10 @@ def orientation_energy(bone_rotations: torch.Tensor, offsets: torch.Tensor,
     if valid is None:
         return cost.mean(-1)
     w = valid.to(ang.dtype)
-    return (cost * w).sum(-1) / w.sum().clamp_min(1)
+    if not bool(valid.any()):  # every sample dropped: uninformative, never a perfect 0
+        return torch.full(cost.shape[:-1], math.pi ** power, dtype=cost.dtype,
+                          device=cost.device)
+    return (cost * w).sum(-1) / w.sum()
 
 
 class OrientationLikelihood(Likelihood):
@@ -64,6 +70,10 @@ class OrientationLikelihood(Likelihood):
         R_ts = sensor_rotations(frame.imu, self.manifold.num_sensors)
         valid = getattr(frame, "imu_valid", None)
         return R_ts.to(self.manifold.sensor_to_bone.dtype), valid
+
+    def evidence(self, observation) -> bool:
+        _, valid = observation
+        return valid is None or bool(valid.any())
 
     def energy(self, poses, observation) -> torch.Tensor:
         R_ts, valid = observation

@@ -37,6 +37,7 @@ __all__ = [
     "prepare_silhouettes",
     "render_capsule_silhouettes",
     "silhouette_iou",
+    "soft_capsule_silhouettes",
 ]
 
 
@@ -240,7 +241,9 @@ def silhouette_energy(endpoints: torch.Tensor, radii: torch.Tensor, rig,
     """Silhouette disagreement ``V_silh (P,)`` in [0, 1] of capsules ``endpoints (P, B, 2, 3)``.
 
     0 means the projected capsules and the foreground agree exactly at the sampled points; see
-    the module docstring for the two terms.
+    the module docstring for the two terms. Without any usable view (all dropped or empty) every
+    particle gets 1: the frame carries no silhouette evidence, and it must not look like a
+    perfect match.
     """
     st = _stadiums(endpoints, radii, rig)
     dt = st.ax.dtype
@@ -261,7 +264,9 @@ def silhouette_energy(endpoints: torch.Tensor, radii: torch.Tensor, rig,
     i2m = 1 - (covered * fv).sum(1) / fv.sum(1).clamp_min(1)  # (C, P)
 
     vv = obs.view_valid.to(dt)[:, None]
-    return (0.5 * (m2i + i2m) * vv).sum(0) / vv.sum().clamp_min(1)
+    if not bool(obs.view_valid.any()):  # no usable view: uninformative, never a perfect 0
+        return torch.ones(endpoints.shape[0], dtype=dt, device=endpoints.device)
+    return (0.5 * (m2i + i2m) * vv).sum(0) / vv.sum()
 
 
 class SilhouetteLikelihood(Likelihood):
@@ -311,6 +316,9 @@ class SilhouetteLikelihood(Likelihood):
         return prepare_silhouettes(frame.silhouettes, self.fg_samples, blur=self.blur,
                                    view_valid=view_valid, dtype=self.body.radii.dtype)
 
+    def evidence(self, observation: SilhouetteObservation) -> bool:
+        return bool(observation.view_valid.any())
+
     def energy(self, poses, observation: SilhouetteObservation) -> torch.Tensor:
         return silhouette_energy(poses.endpoints(self.body), self.body.radii, self.rig,
                                  observation, self.smooth, self.axis_samples,
@@ -340,6 +348,45 @@ def render_capsule_silhouettes(body, rig, theta: torch.Tensor, chunk: int = 2000
         qq = q[a:a + chunk][None].expand(C, -1, -1)
         out[:, a:a + chunk] = _coverage_margin(qq, st, smooth=False)[..., 0] > 0
     return out.reshape(C, H, W)
+
+
+def soft_capsule_silhouettes(endpoints: torch.Tensor, radii: torch.Tensor, rig,
+                             stride: int = 1, tau: float = 1.0) -> torch.Tensor:
+    """Differentiable capsule silhouettes ``(P, C, H', W')`` in [0, 1] of capsule axes
+    ``endpoints (P, B, 2, 3)`` with ``radii (B,)``: the sigmoid of each pixel centre's coverage
+    margin ``r(t) − d`` (pixels, :func:`_coverage_margin`) over ``tau``, on every ``stride``-th
+    pixel (``H' = ceil(H / stride)``). Gradients reach the poses and the radii. All cameras
+    need one image size.
+
+    Example:
+        >>> from torchmocap.body import CapsuleBody
+        >>> from torchmocap.cameras import make_ring_rig
+        >>> from torchmocap.skeleton import human31
+        >>> sk = human31(); body = CapsuleBody(sk).float()
+        >>> ends = body.endpoints(sk(sk.zero_pose((2,))))
+        >>> soft_capsule_silhouettes(ends, body.radii, make_ring_rig(4), stride=4).shape
+        torch.Size([2, 4, 60, 80])
+    """
+    if endpoints.dim() != 4 or endpoints.shape[-2:] != (2, 3):
+        raise ValueError(f"endpoints: expected shape (P, B, 2, 3), got {tuple(endpoints.shape)}")
+    if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
+        raise ValueError(f"stride: expected an int >= 1, got {stride!r}")
+    if not tau > 0:
+        raise ValueError(f"tau: expected a value > 0, got {tau!r}")
+    sizes = {tuple(int(v) for v in sz) for sz in rig.image_size.tolist()}
+    if len(sizes) != 1:
+        raise ValueError(f"rig: all cameras need one image size, got {sorted(sizes)}")
+    W, H = sizes.pop()
+    st = _stadiums(endpoints, radii, rig)
+    dt = st.ax.dtype
+    ys = torch.arange(0, H, stride, dtype=dt, device=st.ax.device)
+    xs = torch.arange(0, W, stride, dtype=dt, device=st.ax.device)
+    gy, gx = torch.meshgrid(ys, xs, indexing="ij")
+    q = torch.stack([gx, gy], -1).reshape(1, -1, 2)
+    C, P = st.ax.shape[0], endpoints.shape[0]
+    margin = _coverage_margin(q.expand(C, -1, -1), st, smooth=True)  # (C, N, P)
+    soft = torch.sigmoid(margin / tau)
+    return soft.permute(2, 0, 1).reshape(P, C, ys.numel(), xs.numel())
 
 
 def silhouette_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

@@ -50,13 +50,24 @@ class ManifoldProposal(Proposal):
             (otherwise every rotation is reachable and the residual is round-off).
         compile: compile the manifold's ``g^{-1}`` core with ``torch.compile`` (see
             :meth:`~torchmocap.ik.SensorManifold.compile_inverse`).
+        limits: what to do with particles whose passive joints ``g^{-1}`` puts outside their
+            limits (about 9% of draws on real motion): ``"keep"`` them, or ``"resample"`` their
+            active diffusion and sensor noise up to ``limit_tries`` times (the particle stays on
+            the manifold; clamping its passive angles would take it off).
+        limit_tries: redraws of ``"resample"``.
+        dropped_spread_deg: a sensor sample flagged invalid (``context.sensor_valid``: dropped,
+            the last value held) carries no information: its sensor follows each particle's own
+            ancestor bone, spread by this many degrees (tangent Gaussian), instead of the stale
+            held value.
 
     ``sample(context, num, generator)`` needs ``context.sensors`` (``(S, 3, 3)``/``(S, 4)``, or
     per particle). ``stats``: ``residual_max_deg``, ``within_limits`` (fraction of passive
-    joints inside limits), ``gimbal`` (count), ``seconds``.
+    joints inside limits), ``gimbal`` (count), ``resampled`` (redrawn particles),
+    ``dropped_sensors`` (invalid samples this frame), ``seconds``.
     """
 
     requires = ("imu",)
+    LIMITS = ("keep", "resample")
 
     def __init__(
         self,
@@ -68,8 +79,20 @@ class ManifoldProposal(Proposal):
         clamp_active: bool = True,
         compute_residual: bool | None = None,
         compile: bool = False,
+        limits: str = "keep",
+        limit_tries: int = 4,
+        dropped_spread_deg: float = 10.0,
     ) -> None:
         super().__init__()
+        if limits not in self.LIMITS:
+            raise ValueError(f"limits: expected one of {self.LIMITS}, got {limits!r}")
+        if isinstance(limit_tries, bool) or not isinstance(limit_tries, int) or limit_tries < 0:
+            raise ValueError(f"limit_tries: expected an int >= 0, got {limit_tries!r}")
+        self.limits, self.limit_tries = limits, limit_tries
+        if not (isinstance(dropped_spread_deg, (int, float)) and dropped_spread_deg >= 0):
+            raise ValueError(f"dropped_spread_deg: expected a number >= 0, got "
+                             f"{dropped_spread_deg!r}")
+        self.dropped_spread = math.radians(dropped_spread_deg)
         if noise is None:
             noise = VonMisesFisherNoise()
         if not isinstance(noise, SensorNoise):
@@ -85,6 +108,11 @@ class ManifoldProposal(Proposal):
         d = manifold.num_active
         sk = manifold.skeleton
         if active_std is None:
+            for name, v in (("rotation_std_deg", rotation_std_deg),
+                            ("translation_std", translation_std)):
+                if isinstance(v, bool) or not isinstance(v, (int, float)) \
+                        or not math.isfinite(v) or v < 0:
+                    raise ValueError(f"{name}: expected a finite number >= 0, got {v!r}")
             std = torch.full((d,), math.radians(rotation_std_deg))
             trans = set(sk.translation_dofs)
             for i, dof in enumerate(manifold.active_dofs):
@@ -101,6 +129,26 @@ class ManifoldProposal(Proposal):
     @property
     def coordinate_std(self) -> torch.Tensor:
         return self.active_std
+
+    def _sensors(self, context: ProposalContext, base: torch.Tensor,
+                 generator: torch.Generator | None) -> torch.Tensor:
+        """This frame's sensors ``(S, 3, 3)``, or per particle ``(P, S, 3, 3)`` when some
+        samples are flagged invalid (those follow each particle's ancestor bone)."""
+        from torchmocap.geometry import so3_exp
+
+        m = self.manifold
+        valid = context.sensor_valid
+        R = sensor_rotations(context.sensors, m.num_sensors).to(base.dtype)
+        if valid is None or bool(valid.all()) or R.dim() != 3:
+            return R
+        bad = (~valid.bool()).to(R.device)
+        num = base.shape[0]
+        anc = m.bone_orientations(base) @ m.sensor_to_bone.to(base.dtype).transpose(-1, -2)
+        v = torch.randn(num, m.num_sensors, 3, generator=generator, dtype=base.dtype,
+                        device=base.device) * self.dropped_spread
+        out = R.expand(num, -1, -1, -1).clone()
+        out[:, bad] = (anc @ so3_exp(v))[:, bad]
+        return out
 
     def decode(
         self,
@@ -133,16 +181,38 @@ class ManifoldProposal(Proposal):
             raise ValueError("context.sensors: ManifoldProposal needs this frame's sensor "
                              "orientations")
         base = select_ancestors(context, num, m.num_dofs, generator)
-        xa = self.coordinates(base)
-        std = context_std(context, self.active_std, xa)
-        xa = xa + torch.randn(xa.shape, generator=generator, dtype=xa.dtype,
-                              device=xa.device) * std
-        if self.clamp_active:
-            xa = torch.clamp(xa, self.active_lower.to(xa.dtype), self.active_upper.to(xa.dtype))
-        sol = self.decode(xa, context.sensors, generator, reference=base)
+        xa0 = self.coordinates(base)
+        std = context_std(context, self.active_std, xa0)
+        sensors = self._sensors(context, base, generator)
+        dropped = int(sensors.dim() == 4)
+
+        def draw(xa0, std, base, sensors):
+            xa = xa0 + torch.randn(xa0.shape, generator=generator, dtype=xa0.dtype,
+                                   device=xa0.device) * std
+            if self.clamp_active:
+                xa = torch.clamp(xa, self.active_lower.to(xa.dtype),
+                                 self.active_upper.to(xa.dtype))
+            return self.decode(xa, sensors, generator, reference=base)
+
+        sol = draw(xa0, std, base, sensors)
+        resampled = 0
+        if self.limits == "resample" and self.limit_tries > 0:
+            theta, within = sol.theta.clone(), sol.within_limits.clone()
+            for _ in range(self.limit_tries):
+                bad = (~within.all(-1)).nonzero()[:, 0]
+                if bad.numel() == 0:
+                    break
+                resampled += int(bad.numel())
+                s_bad = std[bad] if std.dim() == 2 else std
+                redo = draw(xa0[bad], s_bad, base[bad], sensors[bad] if dropped else sensors)
+                theta[bad], within[bad] = redo.theta, redo.within_limits
+            sol.theta, sol.within_limits = theta, within
         stats = {
             "within_limits": sol.within_limits.to(torch.float32).mean().item(),
             "gimbal": int(sol.gimbal.sum()),
+            "resampled": resampled,
+            "dropped_sensors": int((~context.sensor_valid.bool()).sum())
+            if dropped else 0,
         }
         if sol.residual is not None:
             stats["residual_max_deg"] = float(sol.residual.max()) * 57.29577951308232
@@ -150,4 +220,5 @@ class ManifoldProposal(Proposal):
         return Proposed(particles=sol.theta, stats=stats)
 
     def extra_repr(self) -> str:
-        return f"active={self.manifold.num_active}, clamp_active={self.clamp_active}"
+        return (f"active={self.manifold.num_active}, clamp_active={self.clamp_active}, "
+                f"limits={self.limits!r}")

@@ -51,7 +51,10 @@ class SensorAngleCriterion:
         R_ts = sensor_rotations(context.sensors, m.num_sensors).to(theta.dtype)
         req = R_ts @ m.sensor_to_bone.to(theta.dtype)
         got = m.bone_orientations(theta)
-        return geodesic_angle(got, req.expand_as(got))
+        err = geodesic_angle(got, req.expand_as(got))
+        if context.sensor_valid is not None:  # a dropped sample constrains nothing
+            err = err * context.sensor_valid.to(err)
+        return err
 
 
 class RejectionProposal(Proposal):
