@@ -1,5 +1,6 @@
 """Inverse kinematics: the analytic sensor-manifold map of Pons-Moll et al. (2010), kinematic flips
-(interpretation trees) and limb IK of Sminchisescu & Triggs (2003)."""
+(interpretation trees) and limb IK of Sminchisescu & Triggs (2003), and the projection of joint
+positions onto the skeleton of Hauberg & Pedersen (2011)."""
 
 from torchmocap.ik.flip_tree import (
     MAX_TREE_LINKS,
@@ -14,6 +15,11 @@ from torchmocap.ik.limb import (
     LimbSpec,
     limb_dofs,
     solve_limb,
+)
+from torchmocap.ik.projection import (
+    ProjectionResult,
+    SkeletonProjection,
+    project_to_skeleton,
 )
 from torchmocap.ik.sensor_manifold import (
     PAPER_SENSORS,
@@ -32,11 +38,14 @@ __all__ = [
     "LimbIKResult",
     "LimbSpec",
     "ManifoldSolution",
+    "ProjectionResult",
     "SensorManifold",
     "SensorManifoldError",
+    "SkeletonProjection",
     "flip_patterns",
     "interpretation_tree",
     "limb_dofs",
+    "project_to_skeleton",
     "sensor_rotations",
     "solve_limb",
 ]
