@@ -1,17 +1,68 @@
-"""Shared test fixtures: dtype/device selection, tolerances and the shared real data folder."""
+"""Shared fixtures: dtype/device selection, tolerances, test data, and test hygiene.
+
+Test data: trimmed copies of the real recordings (``tests/data_files``, see its README) ship with
+the repository, so a fresh clone runs every test; none is skipped for missing data, and in CI
+(the ``CI`` environment variable set) a missing file fails the test loudly.
+
+Hygiene (autouse): every test starts from seeded global RNGs (torch, numpy, random) and with one
+torch thread, so a test that forgets its ``torch.Generator`` is still reproducible and timings
+do not depend on the machine's core count. Hypothesis runs derandomized in CI.
+"""
 
 from __future__ import annotations
 
+import os
+import random
+import zlib
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
-SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+#: trimmed real recordings vendored with the tests (layout of ``../shared/data``)
+DATA_FILES = Path(__file__).resolve().parent / "data_files"
+#: kept for code that still refers to it: the vendored copies stand in for ``../shared/data``
+SHARED_DATA = DATA_FILES
+
+try:  # a derandomized profile for CI: the same examples on every run
+    from hypothesis import settings as _hyp_settings
+
+    _hyp_settings.register_profile("ci", derandomize=True, deadline=None, print_blob=True)
+    if os.environ.get("CI"):
+        _hyp_settings.load_profile("ci")
+except ImportError:  # pragma: no cover - hypothesis is a dev dependency
+    pass
 
 
 def pytest_addoption(parser):
     parser.addoption("--device", default="cpu", help="device for tests: cpu or cuda")
+
+
+@pytest.fixture(autouse=True)
+def _seeded_global_rng(request):
+    """Seed torch, numpy and ``random`` per test (from the test's id: stable, distinct per
+    test) and pin ``torch.set_num_threads(1)``; restore the thread count afterwards."""
+    seed = zlib.crc32(request.node.nodeid.encode())
+    torch.manual_seed(seed)
+    np.random.seed(seed)
+    random.seed(seed)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def require_data(path: Path) -> Path:
+    """``path`` under :data:`DATA_FILES`, which must exist: a missing file fails the test in CI
+    and skips it (with the reason) elsewhere, e.g. in a partial checkout."""
+    if not path.exists():
+        msg = (f"test data missing: {path} (tests/data_files ships with the repository; "
+               "rebuild it with tests/data_files/make_data_files.py)")
+        if os.environ.get("CI"):
+            pytest.fail(msg)
+        pytest.skip(msg)
+    return path
 
 
 @pytest.fixture
@@ -33,7 +84,15 @@ def tol(dtype: torch.dtype) -> float:
 
 
 @pytest.fixture(scope="session")
+def data_file():
+    """:func:`require_data` for conftests and tests: ``data_file("body/x.xz") -> Path``."""
+    return lambda rel: require_data(DATA_FILES / rel)
+
+
+@pytest.fixture(scope="session")
 def shared_data() -> Path:
-    if not SHARED_DATA.is_dir():
-        pytest.skip(f"shared data folder not found at {SHARED_DATA}")
-    return SHARED_DATA
+    """The real-recordings folder: the trimmed copies in ``tests/data_files`` (same layout as
+    ``../shared/data``: ``mocap/``, ``multiview/``, ``body/``)."""
+    require_data(DATA_FILES / "mocap")
+    require_data(DATA_FILES / "multiview" / "bodytrack_sequenceB_1" / "CALIB")
+    return DATA_FILES

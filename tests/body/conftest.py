@@ -1,13 +1,16 @@
+import lzma
 from pathlib import Path
 
 import pytest
 
-SHARED_DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+_FILES = ("base.obj", "basemesh_vertex_groups.json", "rig.cmu_mb.json", "weights.cmu_mb.json")
 
 
 @pytest.fixture(scope="session")
-def makehuman_dir() -> Path:
-    d = SHARED_DATA / "body" / "makehuman_cc0"
-    if not (d / "base.obj").exists():
-        pytest.skip(f"shared data not found at {d}")
-    return d
+def makehuman_dir(data_file, tmp_path_factory) -> Path:
+    """The CC0 MakeHuman source (tests/data_files/body, xz-compressed), unpacked once."""
+    out = tmp_path_factory.mktemp("makehuman_cc0")
+    for name in _FILES:
+        packed = data_file(f"body/makehuman_cc0/{name}.xz")
+        (out / name).write_bytes(lzma.decompress(packed.read_bytes()))
+    return out

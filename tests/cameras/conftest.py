@@ -3,15 +3,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-SHARED_DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
-BODYTRACK = SHARED_DATA / "multiview" / "bodytrack_sequenceB_1"
-
 
 @pytest.fixture(scope="session")
-def bodytrack_dir() -> Path:
-    if not (BODYTRACK / "CALIB" / "Camera1.cal").exists():
-        pytest.skip(f"shared data not found at {BODYTRACK}")
-    return BODYTRACK
+def bodytrack_dir(shared_data) -> Path:
+    """The bodytrack frame (calibrations, masks, grey images) vendored in tests/data_files."""
+    return shared_data / "multiview" / "bodytrack_sequenceB_1"
 
 
 @pytest.fixture(scope="session")
@@ -21,7 +17,8 @@ def bodytrack_calibs(bodytrack_dir) -> list[Path]:
 
 @pytest.fixture(scope="session")
 def bodytrack_masks(bodytrack_dir) -> np.ndarray:
+    """``(4, 480, 640)`` uint8 foreground masks (0/255)."""
     from PIL import Image
 
-    return np.stack([np.array(Image.open(bodytrack_dir / f"FG{i}" / "image0000.bmp"))
+    return np.stack([np.array(Image.open(bodytrack_dir / f"FG{i}" / "image0000.png"))
                      for i in range(1, 5)])

@@ -126,6 +126,29 @@ class TestProject:
         pts = _points(4).requires_grad_(True)
         assert torch.autograd.gradcheck(lambda p: rig.project(p)[0], (pts,))
 
+    def test_gradcheck_camera_parameters(self):
+        """Pixels are differentiable in K, R (through its rotation vector: R stays a rotation),
+        t and the distortion; float64, tiny case."""
+        from torchmocap.geometry import so3_exp
+
+        rig = _random_rig(C=2, dist=True)
+        pts = _points(3)
+        K = rig.K.clone().requires_grad_()
+        t = rig.t.clone().requires_grad_()
+        d = rig.dist.clone().requires_grad_()
+        w = torch.tensor([[0.01, -0.02, 0.03], [0.0, 0.02, -0.01]], dtype=F64,
+                         requires_grad=True)
+        size = rig.image_size
+
+        def pix(K, w, t, d):
+            return project_points(pts, K, so3_exp(w) @ rig.R, t, d, size)[0]
+
+        assert torch.autograd.gradcheck(pix, (K, w, t, d))
+        # the module's buffers carry the same gradients (a calibration refinement use)
+        R = rig.R.clone().requires_grad_()
+        assert torch.autograd.gradcheck(
+            lambda K, R, t: project_points(pts, K, R, t, None, size)[0], (K, R, t))
+
     @pytest.mark.parametrize("dist", [False, True])
     def test_feature_planar_matches_project(self, dist):
         rig = make_ring_rig(3, image_size=(320, 240)).double() if not dist else _random_rig()
@@ -244,6 +267,72 @@ class TestLookAtAndRigs:
             make_ring_rig(4, fov_deg=200)
         with pytest.raises(CameraError, match="num"):
             make_ring_rig(0)
+
+    @pytest.mark.parametrize("factory", [make_ring_rig, make_ceiling_rig])
+    @pytest.mark.parametrize("kw, field", [
+        ({"image_size": (0, 240)}, "image_size"), ({"image_size": (320, -240)}, "image_size"),
+        ({"image_size": (320.5, 240)}, "image_size"), ({"image_size": (320,)}, "image_size"),
+        ({"image_size": (float("inf"), 240)}, "image_size"),
+        ({"fov_deg": float("nan")}, "fov_deg"), ({"fov_deg": 0.0}, "fov_deg"),
+        ({"num": 2.5}, "num"), ({"num": True}, "num"), ({"height": float("inf")}, "height"),
+        ({"target": (0.0, float("nan"), 1.0)}, "target"), ({"target": (0.0, 1.0)}, "target"),
+    ])
+    def test_exception_factory_fields(self, factory, kw, field):
+        with pytest.raises(CameraError, match=rf"^{field}: "):
+            factory(**kw)
+
+    def test_exception_factory_distances(self):
+        for bad in (0.0, -1.0, float("nan"), float("inf")):
+            with pytest.raises(CameraError, match="^radius: "):
+                make_ring_rig(radius=bad)
+            with pytest.raises(CameraError, match="^half_width: "):
+                make_ceiling_rig(half_width=bad)
+
+
+class TestRigValidation:
+    """CameraRig rejects focal lengths and image sizes a pinhole camera cannot have (before:
+    fx = 0 was accepted and back-projection failed later in a linear solve)."""
+
+    @pytest.mark.parametrize("fx, fy", [(0.0, 500.0), (500.0, 0.0), (-500.0, 500.0),
+                                        (500.0, -1e-3)])
+    def test_exception_focal_lengths(self, fx, fy):
+        rig = _random_rig(C=2)
+        K = rig.K.clone()
+        K[1, 0, 0], K[1, 1, 1] = fx, fy
+        with pytest.raises(CameraError, match=r"K: focal lengths .* camera 1 .*fx"):
+            CameraRig(K, rig.R, rig.t, (640, 480))
+
+    @pytest.mark.parametrize("size", [(0, 480), (640, -480), [[640, 480], [640, 0]],
+                                      (640.5, 480.0), (float("nan"), 480.0),
+                                      (float("inf"), 480.0), (640, 480, 3), "640x480"])
+    def test_exception_image_size(self, size):
+        rig = _random_rig(C=2)
+        with pytest.raises(CameraError, match="^image_size: "):
+            CameraRig(rig.K, rig.R, rig.t, size)
+
+    def test_feature_integral_float_sizes_accepted(self):
+        rig = _random_rig(C=2)
+        r2 = CameraRig(rig.K, rig.R, rig.t, (640.0, 480.0))
+        assert r2.image_size.dtype == torch.int64 and r2.image_size[1].tolist() == [640, 480]
+
+    def test_exception_calibration_files(self, tmp_path):
+        from torchmocap.cameras import read_rig, rig_to_dict, write_rig
+
+        rig = _random_rig(C=2)
+        data = rig_to_dict(rig)
+        data["cameras"][1]["camera_matrix"][0][0] = 0.0
+        import json
+
+        (tmp_path / "r.json").write_text(json.dumps(data))
+        with pytest.raises(CameraError, match=r"r.json: K: focal lengths"):
+            read_rig(tmp_path / "r.json")
+        data = rig_to_dict(rig)
+        data["cameras"][0]["image_width"] = 640.5
+        (tmp_path / "w.json").write_text(json.dumps(data))
+        with pytest.raises(CameraError, match=r"w.json: camera 0: image_width"):
+            read_rig(tmp_path / "w.json")
+        write_rig(rig, tmp_path / "ok.yaml")
+        assert read_rig(tmp_path / "ok.yaml").num_cameras == 2
 
 
 def test_rotation_helper_is_used_consistently():

@@ -38,6 +38,22 @@ class TestSynthCli:
         cfg = _compose(["data.scenario=outdoor", "seed=4", "data.clip.frames=10"])
         assert cfg.data.scenario == "outdoor" and cfg.seed == 4 and cfg.data.clip.frames == 10
 
+    @pytest.mark.parametrize("override, match", [
+        ("seed=1.5", r"^seed: expected an integer seed, got 1\.5"),
+        ("seed=true", r"^seed: expected an integer seed"),
+        ("preview_frame=2.5", r"^preview_frame: expected a frame index"),
+        ("preview_frame=7", r"^preview_frame: 7 is outside the 3 frames"),
+    ])
+    def test_exception_seed_and_preview_frame(self, tmp_path, override, match):
+        """``seed=1.5`` used to run seed 1; settings are checked, not coerced."""
+        from torchmocap.data.loaders import DataConfigError
+
+        scen = tmp_path / "tiny.yaml"
+        scen.write_text(SMALL_SCENARIO)
+        cfg = _compose([f"data.scenario={scen}", "data.clip.frames=3", override])
+        with pytest.raises(DataConfigError, match=match):
+            run(cfg, tmp_path / "out")
+
     def test_default_clip_is_bundled(self):
         from torchmocap.data.loaders import bundled_clip_path
 
@@ -62,8 +78,8 @@ class TestSynthCli:
     def test_console_script(self, tmp_path, shared_data):
         exe = shutil.which("torchmocap-synth") or str(Path(sys.executable).parent /
                                                       "torchmocap-synth")
-        if not os.path.exists(exe):
-            pytest.skip("torchmocap-synth is not installed (pip install -e .)")
+        # the console script is part of the package (pip install -e .): never a skip
+        assert os.path.exists(exe), f"torchmocap-synth is not installed at {exe}"
         scen = tmp_path / "tiny.yaml"
         scen.write_text(SMALL_SCENARIO)
         env = dict(os.environ, OMP_NUM_THREADS="1")

@@ -93,6 +93,31 @@ class TestTangentGaussianSO3:
         assert st.ks_2samp(ang_a.numpy(), ang_b.numpy()).pvalue > 1e-3
         assert math.degrees(ang_b.median().item()) == pytest.approx(5.6, rel=0.03)
 
+    @pytest.mark.parametrize("representation", ["quaternion", "matrix"])
+    def test_gradcheck_log_prob(self, representation):
+        """log_prob is differentiable in the value, the mean rotation (both moved along the
+        group, through tangent vectors) and the scale; float64, tiny case."""
+        from torchmocap.geometry import axis_angle_to_quaternion, quaternion_multiply
+
+        g = torch.Generator().manual_seed(6)
+        q0 = random_quaternion((2,), g, dtype=F64)
+        v = (0.3 * torch.randn(3, 2, 3, generator=g, dtype=F64)).requires_grad_()
+        w = (0.1 * torch.randn(2, 3, generator=g, dtype=F64)).requires_grad_()
+        s = torch.tensor([0.2, 0.5], dtype=F64, requires_grad=True)
+
+        def conv(q):
+            return q if representation == "quaternion" else quaternion_to_matrix(q)
+
+        def lp(v, w, s):
+            loc = quaternion_multiply(q0, axis_angle_to_quaternion(w))
+            x = quaternion_multiply(q0.expand(3, 2, 4), axis_angle_to_quaternion(v))
+            return TangentGaussianSO3(conv(loc), s, validate_args=False).log_prob(conv(x))
+
+        assert torch.autograd.gradcheck(lp, (v, w, s))
+        # at loc = q0 (w = 0) the gradient in v is the Gaussian's: -v / s^2
+        (gv,) = torch.autograd.grad(lp(v, torch.zeros(2, 3, dtype=F64), s).sum(), v)
+        torch.testing.assert_close(gv, -v.detach() / s.detach()[:, None] ** 2)
+
     def test_rsample_gradient(self):
         q0 = torch.tensor([1.0, 0, 0, 0], dtype=F64)
         s = torch.tensor(0.2, dtype=F64, requires_grad=True)

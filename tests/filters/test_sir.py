@@ -86,7 +86,7 @@ class TestAgainstKalman:
         assert res.means.shape == (T, 2) and res.ess.shape == (T,)
 
     def test_log_evidence_unbiased(self):
-        """log(mean L̂) over repeats matches the exact log-likelihood; mean(log L̂) is lower."""
+        """log(mean L̂) over repeats matches the exact log-likelihood (L̂ is unbiased)."""
         zs = _simulate()
         _, _, exact = _kalman(zs)
         g = torch.Generator().manual_seed(2)
@@ -97,7 +97,8 @@ class TestAgainstKalman:
         logs = torch.stack(logs)
         log_mean = float(torch.logsumexp(logs, 0) - math.log(len(logs)))
         assert log_mean == pytest.approx(exact, abs=0.1)  # measured 0.047 (sd of log L̂ 0.27)
-        assert float(logs.mean()) <= log_mean
+        # (mean(log L̂) <= log(mean L̂) held here too, but that is Jensen's inequality for any
+        # numbers at all: it cannot fail, so it is not asserted)
 
     def test_wider_proposal_with_correction(self):
         zs = _simulate()

@@ -237,6 +237,51 @@ class TestSensorManifold:
         with pytest.raises(SensorManifoldError, match="same bone"):
             SensorManifold(sk64, {"a": "l_elbow", "b": "l_elbow"})
 
+    @pytest.mark.parametrize("dtype", [torch.float32, F64], ids=["f32", "f64"])
+    def test_exception_not_rotations(self, sk64, dtype):
+        """2R, zero, reflections and skewed matrices are not sensor orientations; rotations
+        with float-level rounding (products of float32 rotations) are."""
+        m = SensorManifold(human31()).to(dtype)
+        g = torch.Generator().manual_seed(21)
+        th = _random_poses(m.skeleton, 4, g, dtype=dtype)
+        R = m.sensor_orientations(th)  # (4, 5, 3, 3)
+        xa = m(th)
+        flip = torch.diag(torch.tensor([1.0, 1.0, -1.0], dtype=dtype))
+        skew = torch.eye(3, dtype=dtype)
+        skew[0, 1] = 1e-2 if dtype == torch.float32 else 1e-4
+        bad = {"2R": 2 * R[0, 0], "zero": torch.zeros(3, 3, dtype=dtype),
+               "det -1": R[0, 0] @ flip, "skewed": R[0, 0] @ skew}
+        for what, M in bad.items():
+            S = R.clone()
+            S[2, 3] = M
+            with pytest.raises(ValueError, match=r"sensors: expected rotation matrices") as e:
+                m.inverse(xa, S)
+            assert "sensor 3" in str(e.value), what
+            with pytest.raises(ValueError, match=r"sensors0: expected rotation matrices"):
+                m.calibrate(th[2], S[2])
+            with pytest.raises(ValueError, match=r"noise: expected rotation matrices"):
+                m.inverse(xa, R, noise=S)
+        # rounding-level deviations pass: a chain of 50 float products of rotations
+        P = R[0].clone()
+        for k in range(50):
+            P = P @ R[k % 4]
+        m.inverse(xa, P)
+        m.calibrate(th[0], R[0])
+        # quaternions: non-unit and non-finite, named
+        q = matrix_to_quaternion(R[0])
+        with pytest.raises(ValueError, match="sensors0: expected unit quaternions"):
+            m.calibrate(th[0], 2 * q)
+        nan = q.clone()
+        nan[1, 2] = float("nan")
+        with pytest.raises(ValueError, match="sensors0: expected finite"):
+            m.calibrate(th[0], nan)
+        inf = R[0].clone()
+        inf[1, 2, 2] = float("inf")
+        with pytest.raises(ValueError, match="sensors0: expected finite"):
+            m.calibrate(th[0], inf)
+        with pytest.raises(ValueError, match="noise: expected unit quaternions"):
+            m.inverse(xa, R, noise=torch.zeros(4, 5, 4, dtype=dtype))
+
     def test_gradcheck(self, manifold64):
         m = manifold64
         g = torch.Generator().manual_seed(7)

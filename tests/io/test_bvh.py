@@ -111,7 +111,7 @@ class TestRead:
         assert len(ends) == 7 and "Head_end" in ends
         for n in ends:
             assert clip.axes[clip.joint_index(n)].shape[0] == 0
-        assert clip.num_frames == 994 and clip.fps == 120.0
+        assert clip.num_frames == 120 and clip.fps == 120.0  # trimmed copy (994 in all)
 
     def test_feature_unit(self, cmu):
         a = read_bvh(cmu / "cmu21_kick.bvh")  # family unit: cm
@@ -121,9 +121,9 @@ class TestRead:
 
     def test_feature_skip_frames_only_when_asked(self, cmu):
         full = read_bvh(cmu / "01_01.bvh")
-        assert full.num_frames == 2752  # frame 0 (synthetic T-pose) is kept by default
+        assert full.num_frames == 121  # frame 0 (synthetic T-pose) is kept by default
         skipped = read_bvh(cmu / "01_01.bvh", skip_frames=1)
-        assert skipped.num_frames == 2751
+        assert skipped.num_frames == 120
         assert torch.equal(skipped.rotations[0], full.rotations[1])
         # frame 0 is synthetic: almost every joint at its rest rotation; captured frames are not
         eye = torch.eye(3, dtype=torch.float64)
@@ -157,6 +157,21 @@ class TestRead:
         with pytest.raises(MotionFormatError, match="cannot read"):
             read_bvh(tmp_path / "missing.bvh")
         assert issubclass(MotionFormatError, ValueError)
+
+    @pytest.mark.parametrize("dt", ["1e300", "1e-300", "3600", "1e-7", "0", "-0.04", "inf"])
+    def test_exception_absurd_frame_time(self, tmp_path, dt):
+        """``Frame Time: 1e300`` was read as a 1e-300 fps clip (0.0 fps in torchmocap-info)."""
+        p = tmp_path / "dt.bvh"
+        p.write_text(TOY.replace("Frame Time: 0.04", f"Frame Time: {dt}"))
+        with pytest.raises(MotionFormatError, match=r"dt\.bvh:23: frame time") as e:
+            read_bvh(p, unit=1.0)
+        assert e.value.line == 23
+
+    @pytest.mark.parametrize("dt, fps", [("60", 1 / 60), ("0.00001", 100000.0)])
+    def test_feature_frame_time_bounds(self, tmp_path, dt, fps):
+        p = tmp_path / "dt.bvh"
+        p.write_text(TOY.replace("Frame Time: 0.04", f"Frame Time: {dt}"))
+        assert read_bvh(p, unit=1.0).fps == pytest.approx(fps)
 
     def test_parse_bvh_text(self):
         joints, values, fps = parse_bvh(TOY)

@@ -1,4 +1,5 @@
-"""Every file in shared/data/mocap loads with its family and the subject size the README lists."""
+"""Every file of shared/data/mocap (its trimmed copy in tests/data_files) loads with its family
+and the subject size the data README lists."""
 
 from __future__ import annotations
 

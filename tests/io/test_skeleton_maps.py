@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import re
+import sys
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -12,7 +16,10 @@ from torchmocap.io import (
     chain_height,
     detect_family,
     guess_joint_map,
+    guess_joints,
+    guessed_joints,
     human31_positions,
+    joint_map_report,
     known_families,
     load_skeleton_map,
     map_joints,
@@ -21,6 +28,14 @@ from torchmocap.io import (
     write_bvh,
 )
 from torchmocap.skeleton import human31
+
+sys.path.insert(0, str(Path(__file__).parent))
+from synthetic_bvh import (  # noqa: E402
+    CONVENTIONS,
+    human31_motion,
+    names_for,
+    write_unseen_family_bvh,
+)
 
 FAMILIES = ["cmu21", "cmu_asf", "cmu_max", "cmu_mb", "daz43", "hdm05_asf", "human31"]
 
@@ -85,22 +100,112 @@ def _renamed(clip: MotionClip, rename: dict[str, str]) -> MotionClip:
 
 
 def test_unknown_skeleton_error_lists_joints_and_suggestions(walk):
-    odd = _renamed(walk, {"LeftKnee": "L_Knee_jnt", "Head_end": "HeadTop_tip",
-                          "LeftToe": "lToe_j", "Hips": "Hips"})
+    odd = _renamed(walk, {"LeftKnee": "Gelenk_7", "Head_end": "Kopf_Spitze",
+                          "LeftToe": "Zeh_j", "Hips": "Hips"})
     assert detect_family(odd) is None
     assert unmapped_joints(odd) == ["head_top", "l_knee", "l_toe"]
     with pytest.raises(SkeletonMapError) as e:
         map_joints(odd)
     msg = str(e.value)
     assert "cannot map 3 human31 joint(s): ['head_top', 'l_knee', 'l_toe']" in msg
-    assert "l_knee: closest source joints ['L_Knee_jnt'" in msg
-    assert "head_top: closest source joints ['HeadTop_tip'" in msg
-    assert "l_toe: closest source joints ['lToe_j'" in msg and "docs/skeleton_maps.md" in msg
+    for h in ("head_top", "l_knee", "l_toe"):
+        assert f"  {h}: closest source joints " in msg
+    assert "docs/skeleton_maps.md" in msg
     assert "RightKnee" not in msg.split("l_knee:")[1].split("\n")[0]  # wrong side not offered
     with pytest.raises(SkeletonMapError):
         chain_height(odd)
     # guessing works where names are known spellings
     assert guess_joint_map(odd)["r_knee"] == "RightKnee"
+
+
+def test_guess_understands_decorated_spellings(walk):
+    """``L_Knee_jnt``, ``HeadTop_tip``, ``lToe_j`` (rejected before) are read by their words."""
+    odd = _renamed(walk, {"LeftKnee": "L_Knee_jnt", "Head_end": "HeadTop_tip",
+                          "LeftToe": "lToe_j"})
+    g = guess_joints(odd)
+    assert g.complete
+    assert (g.joints["l_knee"], g.joints["head_top"], g.joints["l_toe"]) == (
+        "L_Knee_jnt", "HeadTop_tip", "lToe_j")
+    # the 3dsMax-style CMU names alone give the built-in map (hands: the hand joint, not the
+    # finger base the map picked)
+    ref = dict(load_skeleton_map("cmu_max").joints)
+    ref.update(l_hand="lhand", r_hand="rhand")
+    assert guess_joints(walk).joints == ref
+    assert map_joints(odd) == {h: odd.joint_names.index(v) for h, v in g.joints.items()}
+    assert guessed_joints(odd) == list(HUMAN31_JOINTS) and guessed_joints(walk) == []
+
+
+@pytest.mark.parametrize("convention", sorted(CONVENTIONS))
+@pytest.mark.parametrize("end_length", [0.0, 0.09], ids=["zero_end_sites", "end_sites"])
+def test_guess_unseen_families(tmp_path, convention, end_length):
+    """A 22-joint skeleton of no built-in family, named by a common convention, maps onto
+    human31 by its names alone; its mapped joints are human31's (the skeleton has human31's
+    geometry and motion) and the subject fit reproduces them."""
+    from torchmocap.data.subject import fit_subject
+
+    path = write_unseen_family_bvh(tmp_path / f"{convention}.bvh", convention,
+                                   end_length=end_length)
+    clip = read_bvh(path, unit=0.01)
+    assert clip.num_joints == 22 + 5 and detect_family(clip) is None
+    roles = names_for(convention)
+    g = guess_joints(clip)
+    assert g.complete, (g.missing, g.ambiguous)
+    expect = {h: roles[h] for h in HUMAN31_JOINTS if h in roles}
+    expect.update(head_top=f"{roles['head']}_end", l_hand=f"{roles['l_wrist']}_end",
+                  r_hand=f"{roles['r_wrist']}_end")
+    assert g.joints == expect
+    report = joint_map_report(clip)
+    assert report["source"] == "guessed" and report["guessed_joints"] == list(HUMAN31_JOINTS)
+    assert report["unmapped_joints"] == [] and report["joints"] == expect
+    # FK of the mapped joints = human31's FK of the driving poses (exact geometry)
+    sk = human31().double()
+    p_ref = sk(human31_motion(clip.num_frames)).positions
+    p = human31_positions(clip)
+    body = [i for i, h in enumerate(HUMAN31_JOINTS) if end_length or h not in (
+        "head_top", "l_hand", "r_hand")]
+    torch.testing.assert_close(p[:, body], p_ref[:, body], atol=1e-5, rtol=0)
+    fit = fit_subject(clip, iterations=20)
+    assert float(fit.residual.max()) < 1e-4
+    assert fit.info["guessed_joints"] == list(HUMAN31_JOINTS)
+
+
+def test_vendored_unseen_family_file_is_reproducible(tmp_path, shared_data):
+    """tests/data_files/synthetic/unseen22_suffix_L.bvh is what the helper writes."""
+    path = write_unseen_family_bvh(tmp_path / "u.bvh", "suffix_underscore", frames=6)
+    committed = shared_data / "synthetic" / "unseen22_suffix_L.bvh"
+    assert committed.read_text() == path.read_text()
+    clip = read_bvh(committed, unit=0.01)
+    assert len([n for n in clip.joint_names if not n.endswith("_end")]) == 22
+    assert guess_joints(clip).complete
+
+
+@pytest.mark.parametrize("rename, joint, candidates", [
+    ({"l_clavicle": "Arm_L"}, "l_shoulder", ["Arm_L", "UpperArm_L"]),
+    ({"l_knee": "Shin_L", "l_ankle": "Calf_L"}, "l_knee", ["Shin_L", "Calf_L"]),
+])
+def test_guess_refuses_ambiguous_names(tmp_path, rename, joint, candidates):
+    path = write_unseen_family_bvh(tmp_path / "amb.bvh", "suffix_underscore", rename=rename)
+    clip = read_bvh(path, unit=0.01)
+    g = guess_joints(clip)
+    assert g.ambiguous == {joint: tuple(candidates)} and joint not in g.joints
+    assert joint in unmapped_joints(clip)
+    with pytest.raises(SkeletonMapError, match=re.escape(
+            f"{joint}: ambiguous, candidates {candidates}")):
+        map_joints(clip)
+
+
+@pytest.mark.parametrize("name, side, core", [
+    ("mixamorig:LeftUpLeg", "l", "upleg"), ("UpperArm_L", "l", "upperarm"),
+    ("thigh.R", "r", "thigh"), ("lShldr", "l", "shldr"), ("LHipJoint", "l", "hipjoint"),
+    ("lfemur", "l", "femur"), ("rtoes", "r", "toes"), ("lowerback", None, "lowerback"),
+    ("Bip01 R Calf", "r", "calf"), ("RIGHT_FOREARM", "r", "forearm"), ("KneeL", "l", "knee"),
+    ("leg", None, "leg"), ("Left Hand_end", "l", "hand"), ("spine.002", None, "spine"),
+])
+def test_name_parsing(name, side, core):
+    from torchmocap.io.skeleton_maps import _parse_name
+
+    n = _parse_name(name)
+    assert (n.side, n.core) == (side, core)
 
 
 def test_user_map_yaml(walk, tmp_path, monkeypatch):

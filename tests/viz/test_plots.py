@@ -93,8 +93,8 @@ class TestOverlay:
     def test_feature_real_frame(self, tmp_path, bodytrack_dir):
         cal = bodytrack_dir
         rig = read_bouguet_rig([cal / "CALIB" / f"Camera{i}.cal" for i in range(1, 5)], "mm")
-        image = np.array(Image.open(cal / "CAM2" / "image0000.bmp"))
-        mask = np.array(Image.open(cal / "FG2" / "image0000.bmp"))
+        image = np.array(Image.open(cal / "CAM2" / "image0000.png"))
+        mask = np.array(Image.open(cal / "FG2" / "image0000.png"))
         pts = torch.tensor([[0.15, 1.0, 0.0], [0.15, 1.0, 1.7]], dtype=F64)
         path = overlay_on_image(image, rig, 1, pts, tmp_path / "real.png", mask=mask)
         img = _read(path)

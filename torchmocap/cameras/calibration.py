@@ -18,7 +18,7 @@ from typing import Any
 import torch
 import yaml
 
-from torchmocap.cameras.rig import CameraError, CameraRig
+from torchmocap.cameras.rig import CameraError, CameraRig, _check_image_size
 
 __all__ = [
     "UNITS",
@@ -138,7 +138,7 @@ def read_bouguet_cal(path: str | os.PathLike, unit: str | float = "mm",
         raise CameraError(f"{path}:{lines[22]}-{lines[24]}: Rodrigues vector disagrees with the "
                           f"rotation matrix on lines {lines[10]}-{lines[18]} (max deviation "
                           f"{dev:.3g}); is the matrix transposed?")
-    size = torch.tensor(list(image_size), dtype=torch.long)
+    size = _check_image_size(image_size)
     return {"K": K, "dist": dist, "R": R, "t": t, "image_size": size}
 
 
@@ -193,6 +193,14 @@ def _matrix(value: Any, shape: tuple[int, ...], where: str, field: str) -> torch
     return x.reshape(shape)
 
 
+def _pixels(x: torch.Tensor, where: str, field: str) -> torch.Tensor:
+    """Whole positive pixel counts (``int()`` would turn 640.5 into 640 silently)."""
+    if not bool(((x > 0) & (x == x.round())).all()):
+        raise CameraError(f"{where}: {field} must be positive whole numbers of pixels, got "
+                          f"{x.tolist()}")
+    return x.long()
+
+
 def _first(d: dict[str, Any], keys: Sequence[str], where: str, required: bool = True) -> Any:
     for k in keys:
         if k in d:
@@ -245,11 +253,15 @@ def rig_from_dict(data: dict[str, Any], source: str = "<dict>", unit: str | floa
         ts.append(_matrix(_first(cam, ["translation", "t", "tvec", "T"], where), (3,), where,
                           "t") * scale)
         if "image_size" in cam:
-            sizes.append(_matrix(cam["image_size"], (2,), where, "image_size").long())
+            sizes.append(_pixels(_matrix(cam["image_size"], (2,), where, "image_size"), where,
+                                 "image_size"))
         else:
             w = _first(cam, ["image_width", "width"], where)
             h = _first(cam, ["image_height", "height"], where)
-            sizes.append(torch.tensor([int(w), int(h)]))
+            sizes.append(torch.cat([_pixels(_matrix([w], (1,), where, "image_width"), where,
+                                            "image_width"),
+                                    _pixels(_matrix([h], (1,), where, "image_height"), where,
+                                            "image_height")]))
         names.append(str(cam.get("name", f"cam{i}")))
     try:
         return CameraRig(torch.stack(Ks), torch.stack(Rs), torch.stack(ts), torch.stack(sizes),

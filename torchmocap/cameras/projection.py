@@ -199,9 +199,10 @@ def project_points(points: Tensor, K: Tensor, R: Tensor, t: Tensor, dist: Tensor
     _check_last("points", points, (3,))
     C = _check_rig_params(K, dist, R, t)
     distorted = dist is not None and bool((dist != 0).any())
-    if not distorted and _third_row_is_unit(K):
+    if not distorted:
         # pinhole fast path: one (K R | K t) transform gives (z u, z v, z) directly
-        ph = world_to_camera(points, K @ R, (K @ t[..., None])[..., 0])  # (*, C, N, 3)
+        Kp = _pinhole(K)
+        ph = world_to_camera(points, Kp @ R, (Kp @ t[..., None])[..., 0])  # (*, C, N, 3)
         depth = ph[..., 2]
         pixels = ph[..., :2] / depth.clamp_min(_DEPTH_EPS).unsqueeze(-1)
         return pixels, depth, _visible(pixels[..., 0], pixels[..., 1], depth, image_size, C)
@@ -219,8 +220,9 @@ def project_points(points: Tensor, K: Tensor, R: Tensor, t: Tensor, dist: Tensor
         n = xy.shape[-2]
         xy_c = xy.reshape(-1, C, n, 2).transpose(0, 1).reshape(C, -1, 2)
         ones = torch.ones_like(xy_c[..., :1])
-        pix_u = torch.einsum("cij,cmj->cmi", K, torch.cat([xy_c, ones], -1))[..., :2]
-        pix_c = _kornia_distort(pix_u, K, dist)
+        Kp = _pinhole(K)
+        pix_u = torch.einsum("cij,cmj->cmi", Kp, torch.cat([xy_c, ones], -1))[..., :2]
+        pix_c = _kornia_distort(pix_u, Kp, dist)
         pixels = pix_c.reshape(C, -1, n, 2).transpose(0, 1).reshape(*lead, C, n, 2)
     else:
         fx, fy = K[:, 0, 0, None], K[:, 1, 1, None]
@@ -231,9 +233,13 @@ def project_points(points: Tensor, K: Tensor, R: Tensor, t: Tensor, dist: Tensor
     return pixels, depth, visible & _visible(pixels[..., 0], pixels[..., 1], depth, image_size, C)
 
 
-def _third_row_is_unit(K: Tensor) -> bool:
-    """``K[:, 2] == (0, 0, 1)`` for every camera: ``K (R x + t)`` then has the depth as its z."""
-    return bool((K[:, 2] == K.new_tensor([0.0, 0.0, 1.0])).all())
+def _pinhole(K: Tensor) -> Tensor:
+    """``K`` reduced to the pinhole model's five parameters (fx, skew, cx / fy, cy) with the third
+    row ``(0, 0, 1)``: the entries every projection path reads. ``K (R x + t)`` then has the
+    depth as its z, and gradients never reach entries the model ignores (``K[1, 0]``, the third
+    row), whichever path runs."""
+    unit = K.new_tensor([0.0, 0.0, 1.0]).expand(K.shape[0], 1, 3)
+    return torch.cat([K[:, :2].triu(), unit], 1)
 
 
 def _visible(u: Tensor, v: Tensor, depth: Tensor, image_size: Tensor | None, C: int) -> Tensor:
@@ -262,11 +268,12 @@ def project_points_planar(points: Tensor, K: Tensor, R: Tensor, t: Tensor,
     if points.dim() != 2 or points.shape[-1] != 3:
         raise ValueError(f"points: expected shape (M, 3), got {tuple(points.shape)}")
     C = _check_rig_params(K, dist, R, t)
-    if (dist is not None and bool((dist != 0).any())) or not _third_row_is_unit(K):
+    if dist is not None and bool((dist != 0).any()):
         pix, depth, visible = project_points(points, K, R, t, dist, image_size)
         return pix[..., 0], pix[..., 1], depth, visible
-    KR = (K @ R).reshape(3 * C, 3)
-    Kt = (K @ t[..., None]).reshape(3 * C, 1)
+    Kp = _pinhole(K)
+    KR = (Kp @ R).reshape(3 * C, 3)
+    Kt = (Kp @ t[..., None]).reshape(3 * C, 1)
     h = torch.addmm(Kt, KR, points.T).view(C, 3, -1)
     depth = h[:, 2]
     z = depth.clamp_min(_DEPTH_EPS)

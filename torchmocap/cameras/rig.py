@@ -24,6 +24,65 @@ class CameraError(ValueError):
     """Malformed camera parameters or calibration file (names the file and line when known)."""
 
 
+def _check_image_size(image_size, C: int | None = None, name: str = "image_size") -> Tensor:
+    """``image_size`` as int64 ``(C, 2)`` (or ``(2,)`` when ``C`` is None): positive whole
+    numbers of pixels; 320.5, 0, -240, NaN or inf are errors naming ``name``."""
+    try:
+        raw = torch.as_tensor(image_size)
+    except (TypeError, ValueError, RuntimeError):
+        raise CameraError(f"{name}: expected (width, height) in pixels, got {image_size!r}"
+                          ) from None
+    want = "(2,)" if C is None else f"({C}, 2) or (2,)"
+    if raw.dtype == torch.bool or raw.is_complex():
+        raise CameraError(f"{name}: expected {want} whole numbers of pixels, got {image_size!r}")
+    if raw.shape == (2,) and C is not None:
+        raw = raw.expand(C, 2)
+    if raw.shape != ((2,) if C is None else (C, 2)):
+        raise CameraError(f"{name}: expected shape {want} (width, height), got "
+                          f"{tuple(raw.shape)}")
+    f = raw.double()
+    if not bool((torch.isfinite(f) & (f > 0) & (f == f.round())).all()):
+        raise CameraError(f"{name}: expected positive whole numbers of pixels (width, height), "
+                          f"got {raw.tolist()}")
+    return f.long().clone()
+
+
+def _check_focal(K: Tensor) -> None:
+    """Pinhole intrinsics: ``fx, fy > 0`` and the third row ``(0, 0, 1)``, ``K[1, 0] = 0`` (the
+    entries projection reads; anything else there would be silently ignored)."""
+    fx, fy = K[:, 0, 0], K[:, 1, 1]
+    bad = ~((fx > 0) & (fy > 0))
+    if bool(bad.any()):
+        i = int(bad.nonzero()[0])
+        raise CameraError(f"K: focal lengths must be positive; camera {i} has fx = "
+                          f"{float(fx[i]):g}, fy = {float(fy[i]):g}")
+    form = torch.stack([K[:, 1, 0], K[:, 2, 0], K[:, 2, 1], K[:, 2, 2] - 1], -1)
+    off = form.abs().amax(-1) > 1e-9 * torch.maximum(fx, fy).clamp_min(1)
+    if bool(off.any()):
+        i = int(off.nonzero()[0])
+        raise CameraError(f"K: expected pinhole intrinsics [[fx, s, cx], [0, fy, cy], "
+                          f"[0, 0, 1]]; camera {i} has K = {K[i].tolist()}")
+
+
+def _check_number(value, name: str, what: str, ok) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not \
+            math.isfinite(value) or not ok(value):
+        raise CameraError(f"{name}: expected {what}, got {value!r}")
+    return float(value)
+
+
+def _check_point(value, name: str) -> Tensor:
+    try:
+        p = torch.as_tensor(list(value), dtype=torch.float64)
+    except (TypeError, ValueError):
+        raise CameraError(f"{name}: expected a 3D point (x, y, z) in metres, got {value!r}"
+                          ) from None
+    if p.shape != (3,) or not bool(torch.isfinite(p).all()):
+        raise CameraError(f"{name}: expected a finite 3D point (x, y, z) in metres, got "
+                          f"{value!r}")
+    return p
+
+
 def _is_rotation(R: Tensor, tol: float) -> Tensor:
     eye = torch.eye(3, dtype=R.dtype, device=R.device)
     orth = (R @ R.transpose(-1, -2) - eye).abs().amax(dim=(-1, -2)) < tol
@@ -38,10 +97,12 @@ class CameraRig(nn.Module):
     (``x_cam = R x + t``, world metres), ``image_size (C, 2)`` (width, height) as int64.
 
     Args:
-        K: ``(C, 3, 3)`` intrinsics.
+        K: ``(C, 3, 3)`` pinhole intrinsics ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` with
+            ``fx, fy > 0`` (checked: a zero or negative focal length is an error here, not a
+            failed linear solve later).
         R: ``(C, 3, 3)`` rotations (checked orthonormal with det +1).
         t: ``(C, 3)`` translations.
-        image_size: ``(C, 2)`` or ``(2,)`` (width, height) in pixels.
+        image_size: ``(C, 2)`` or ``(2,)`` (width, height), positive whole numbers of pixels.
         dist: ``(C, 5)`` distortion; default zeros.
         names: optional camera names.
 
@@ -77,15 +138,11 @@ class CameraRig(nn.Module):
         if dist.shape != (C, 5):
             raise CameraError(f"dist must have shape ({C}, 5) (k1, k2, p1, p2, k3), got "
                               f"{tuple(dist.shape)}")
-        size = torch.as_tensor(image_size, dtype=torch.long)
-        if size.shape == (2,):
-            size = size.expand(C, 2).clone()
-        if size.shape != (C, 2) or bool((size <= 0).any()):
-            raise CameraError(f"image_size must be positive (C, 2) or (2,) (width, height), got "
-                              f"{tuple(size.shape)}")
+        size = _check_image_size(image_size, C)
         for name, x in (("K", K), ("R", R), ("t", t), ("dist", dist)):
             if not bool(torch.isfinite(x).all()):
                 raise CameraError(f"{name} contains non-finite values")
+        _check_focal(K)
         tol = 1e-4 if K.dtype == torch.float32 else 1e-6
         ok = _is_rotation(R, tol)
         if not bool(ok.all()):
@@ -170,14 +227,20 @@ class CameraRig(nn.Module):
 
 
 def _focal_from_fov(width: float, fov_deg: float) -> float:
-    if not 0 < fov_deg < 180:
-        raise CameraError(f"fov_deg must be in (0, 180), got {fov_deg}")
+    _check_number(fov_deg, "fov_deg", "a field of view in (0, 180) degrees",
+                  lambda v: 0 < v < 180)
     return 0.5 * width / math.tan(math.radians(fov_deg) / 2)
+
+
+def _check_num(num) -> int:
+    if isinstance(num, bool) or not isinstance(num, int) or num < 1:
+        raise CameraError(f"num: expected an integer number of cameras ≥ 1, got {num!r}")
+    return num
 
 
 def _rig_from_eyes(eyes: Tensor, targets: Tensor, image_size: Sequence[int], fov_deg: float,
                    up: Tensor, names: list[str]) -> CameraRig:
-    w, h = int(image_size[0]), int(image_size[1])
+    w, h = (int(v) for v in _check_image_size(image_size).tolist())
     f = _focal_from_fov(w, fov_deg)
     C = eyes.shape[0]
     K = torch.tensor([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]],
@@ -209,11 +272,13 @@ def make_ring_rig(num: int = 4, radius: float = 4.0, height: float = 2.5,
         >>> make_ring_rig(4, image_size=(640, 480)).K[0, 0, 0].round()
         tensor(554., dtype=torch.float64)
     """
-    if num < 1:
-        raise CameraError(f"num must be ≥ 1, got {num}")
-    if radius <= 0:
-        raise CameraError(f"radius must be positive, got {radius}")
-    tgt = torch.tensor(list(target), dtype=torch.float64)
+    _check_num(num)
+    _check_number(radius, "radius", "a positive finite distance (m)", lambda v: v > 0)
+    _check_number(height, "height", "a finite height (m)", lambda v: True)
+    _check_number(start_angle_deg, "start_angle_deg", "a finite angle (deg)", lambda v: True)
+    _check_image_size(image_size)
+    _focal_from_fov(1.0, fov_deg)
+    tgt = _check_point(target, "target")
     ang = torch.deg2rad(torch.tensor(start_angle_deg, dtype=torch.float64)) + \
         torch.arange(num, dtype=torch.float64) * (2 * math.pi / num)
     eyes = torch.stack([tgt[0] + radius * torch.cos(ang), tgt[1] + radius * torch.sin(ang),
@@ -234,9 +299,12 @@ def make_ceiling_rig(num: int = 4, half_width: float = 2.0, height: float = 3.0,
     Returns:
         a distortion-free :class:`CameraRig` in float64.
     """
-    if num < 1:
-        raise CameraError(f"num must be ≥ 1, got {num}")
-    tgt = torch.tensor(list(target), dtype=torch.float64)
+    _check_num(num)
+    _check_number(half_width, "half_width", "a positive finite distance (m)", lambda v: v > 0)
+    _check_number(height, "height", "a finite height (m)", lambda v: True)
+    _check_image_size(image_size)
+    _focal_from_fov(1.0, fov_deg)
+    tgt = _check_point(target, "target")
     ang = math.pi / 4 + torch.arange(num, dtype=torch.float64) * (2 * math.pi / num)
     r = half_width * math.sqrt(2)
     eyes = torch.stack([tgt[0] + r * torch.cos(ang), tgt[1] + r * torch.sin(ang),

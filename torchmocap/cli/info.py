@@ -1,22 +1,28 @@
-"""``torchmocap-info PATH [--asf ASF]``: describe a motion or camera-calibration file as JSON.
+"""``torchmocap-info PATH [--asf ASF] [--skeleton-map NAME|YAML]``: describe a motion or
+camera-calibration file as JSON.
 
 Motion files (``.bvh``, ``.amc`` + ASF, ``.asf``): format, skeleton family, joints, frames, fps,
-duration, the straightened ankle-hip-head chain length (``height_m``) and the human31 joints the
-family's skeleton map cannot provide. Camera files (Bouguet ``.cal``, OpenCV-style or torchmocap
-``.yaml``/``.yml``/``.json`` rigs): format and per-camera intrinsics/extrinsics in metres.
-Unreadable input: one line on stderr and exit status 2.
+duration, the straightened ankle-hip-head chain length (``height_m``), how the joints map onto
+human31 (``joint_map``, from the family's skeleton map or ``--skeleton-map``, else guessed from
+the joint names: ``joint_map_source`` says which and ``guessed_joints`` lists the guessed ones),
+and the human31 joints that cannot be mapped (``unmapped_joints``; ``ambiguous_joints`` lists
+the candidates of names that fit twice). Camera files (Bouguet ``.cal``, OpenCV-style or
+torchmocap ``.yaml``/``.yml``/``.json`` rigs): format and per-camera intrinsics/extrinsics in
+metres. The output is strict JSON (no ``NaN``/``Infinity``). Unreadable input, or a file whose
+numbers overflow: one line on stderr and exit status 2.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import warnings
 from pathlib import Path
 from typing import Any
 
-__all__ = ["describe", "main"]
+__all__ = ["describe", "main", "to_json"]
 
 _CAMERA_SUFFIXES = (".cal", ".json", ".yaml", ".yml")
 
@@ -25,17 +31,19 @@ def _round(x: float, nd: int = 6) -> float:
     return round(float(x), nd)
 
 
-def _describe_motion(path: Path, asf: str | None) -> dict[str, Any]:
+def _describe_motion(path: Path, asf: str | None, skeleton_map: str | None = None
+                     ) -> dict[str, Any]:
     from torchmocap.io.errors import SkeletonMapError
     from torchmocap.io.load import load_motion
-    from torchmocap.io.skeleton_maps import chain_height, unmapped_joints
+    from torchmocap.io.skeleton_maps import chain_height, joint_map_report
 
-    clip = load_motion(path, asf=asf)
+    clip = load_motion(path, asf=asf, skeleton_map=skeleton_map)
     is_asf_only = path.suffix.lower() == ".asf"
     try:
-        height = _round(chain_height(clip), 4)
+        height = _round(chain_height(clip, skeleton_map), 4)
     except SkeletonMapError:
         height = None
+    report = joint_map_report(clip, skeleton_map)
     return {
         "path": str(path),
         "format": path.suffix.lower().lstrip("."),
@@ -47,7 +55,11 @@ def _describe_motion(path: Path, asf: str | None) -> dict[str, Any]:
         "duration_s": 0.0 if is_asf_only else _round(clip.duration_s, 4),
         "height_m": height,
         "unit_m": _round(clip.unit, 9),
-        "unmapped_joints": unmapped_joints(clip),
+        "joint_map_source": report["source"],
+        "joint_map": report["joints"],
+        "guessed_joints": report["guessed_joints"],
+        "unmapped_joints": report["unmapped_joints"],
+        "ambiguous_joints": report["ambiguous"],
     }
 
 
@@ -91,7 +103,8 @@ def _describe_camera(path: Path) -> dict[str, Any]:
     return {"path": str(path), "format": f"camera_rig_{kind}", "cameras": cams}
 
 
-def describe(path: str | Path, asf: str | None = None) -> dict[str, Any]:
+def describe(path: str | Path, asf: str | None = None,
+             skeleton_map: str | None = None) -> dict[str, Any]:
     """The JSON-able description printed by ``torchmocap-info``."""
     from torchmocap.io.load import MOTION_SUFFIXES
 
@@ -100,13 +113,45 @@ def describe(path: str | Path, asf: str | None = None) -> dict[str, Any]:
         raise FileNotFoundError(f"{path}: no such file")
     suffix = path.suffix.lower()
     if suffix in MOTION_SUFFIXES:
-        return _describe_motion(path, asf)
+        return _describe_motion(path, asf, skeleton_map)
+    if skeleton_map is not None:
+        raise ValueError(f"--skeleton-map: applies to motion files {MOTION_SUFFIXES}, not to "
+                         f"{path.name}")
     if suffix in _CAMERA_SUFFIXES:
         return _describe_camera(path)
     raise ValueError(
         f"{path}: unsupported file type {suffix or '(none)'!r}; expected motion "
         f"{MOTION_SUFFIXES} or camera calibration {_CAMERA_SUFFIXES}"
     )
+
+
+def _non_finite(obj: Any, where: str = "") -> tuple[str, float] | None:
+    """The first (field, value) of ``obj`` that is a NaN or infinite float, else ``None``."""
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return where or "(top level)", obj
+    if isinstance(obj, dict):
+        items = obj.items()
+    elif isinstance(obj, (list, tuple)):
+        items = ((f"[{i}]", v) for i, v in enumerate(obj))
+    else:
+        return None
+    for k, v in items:
+        sub = f"{where}{k}" if str(k).startswith("[") else (f"{where}.{k}" if where else str(k))
+        hit = _non_finite(v, sub)
+        if hit is not None:
+            return hit
+    return None
+
+
+def to_json(out: dict[str, Any]) -> str:
+    """Strict JSON of a description; a NaN or infinity (e.g. a bone length that overflows) is a
+    ``ValueError`` naming the field (``json`` would print ``Infinity``, which is not JSON)."""
+    hit = _non_finite(out)
+    if hit is not None:
+        field, value = hit
+        raise ValueError(f"{out.get('path', '')}: {field} is {value} (not a finite number): the "
+                         "file's values are out of range")
+    return json.dumps(out, indent=2, allow_nan=False)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -117,11 +162,15 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("path", help="motion (.bvh, .amc, .asf) or camera (.cal, .json, .yaml)")
     parser.add_argument("--asf", default=None, help="ASF skeleton of an AMC file")
+    parser.add_argument("--skeleton-map", default=None, metavar="NAME|YAML",
+                        help="skeleton map (built-in family name or map YAML) to map the "
+                             "motion file's joints with, instead of the detected one")
     args = parser.parse_args(argv)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            out = describe(args.path, asf=args.asf)
+            out = describe(args.path, asf=args.asf, skeleton_map=args.skeleton_map)
+            text = to_json(out)
         except Exception as e:  # noqa: BLE001 - any failure is reported as one line, exit 2
             msg = " ".join(str(e).split()) or type(e).__name__
             print(f"torchmocap-info: error: {msg}", file=sys.stderr)
@@ -129,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
     for w in caught:
         print(f"torchmocap-info: warning: {' '.join(str(w.message).split())}", file=sys.stderr)
     try:
-        print(json.dumps(out, indent=2))
+        print(text)
         sys.stdout.flush()
     except BrokenPipeError:  # e.g. piped into `head`
         sys.stderr.close()

@@ -24,13 +24,20 @@ __all__ = ["main", "preview_image", "run"]
 
 def run(cfg: Any, out_dir: Path) -> dict[str, Any]:
     """Load the clip, fit the subject, synthesise, save ``out_dir/sequence`` and the preview."""
+    from torchmocap.data.loaders import DataConfigError, check_seed
+
+    check_seed(cfg.seed, "seed")  # 1.5 is an error, not seed 1
+    t = cfg.get("preview_frame")
+    if t is not None and (isinstance(t, bool) or not isinstance(t, int)):
+        raise DataConfigError(f"preview_frame: expected a frame index or null, got {t!r}")
     seq = load_sequence(cfg, min_frames=1)
     seq.save(out_dir / "sequence", overwrite=True)
     out = {"sequence": str(out_dir / "sequence"), "frames": seq.num_frames,
            "modalities": seq.modalities}
     if cfg.get("preview", True):
-        t = cfg.get("preview_frame")
-        t = seq.num_frames // 2 if t is None else int(t)
+        t = seq.num_frames // 2 if t is None else t
+        if not -seq.num_frames <= t < seq.num_frames:
+            raise DataConfigError(f"preview_frame: {t} is outside the {seq.num_frames} frames")
         preview_image(seq, t).save(out_dir / "preview.png")
         out["preview"] = str(out_dir / "preview.png")
     return out

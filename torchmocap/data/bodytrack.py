@@ -1,7 +1,8 @@
 """The real PARSEC bodytrack frame as a one-frame :class:`~torchmocap.data.Sequence`.
 
 A bodytrack frame folder holds ``CALIB/Camera<i>.cal`` (Bouguet calibrations in millimetres),
-``CAM<i>/image0000.bmp`` (640x480 grey images) and ``FG<i>/image0000.bmp`` (foreground masks).
+``CAM<i>/image0000.bmp`` (640x480 grey images) and ``FG<i>/image0000.bmp`` (foreground masks);
+lossless PNG copies (``image0000.png``, as in ``tests/data_files``) are read as well.
 The loader carves the masks' visual hull, scales a human31 to the hull's height (the subject's
 tracking skeleton, ``meta["subject_skeleton"]``) and places standing candidate poses at the hull's
 centre, one per heading (``meta["initial_poses"]``) — what a tracker with
@@ -16,6 +17,15 @@ from pathlib import Path
 import torch
 
 __all__ = ["load_bodytrack", "load_bodytrack_sequence"]
+
+
+def _frame_file(folder: Path) -> Path | None:
+    """``image0000.bmp`` (PARSEC's files) or ``image0000.png`` (a lossless copy) in ``folder``."""
+    for suffix in (".bmp", ".png"):
+        p = folder / f"image0000{suffix}"
+        if p.is_file():
+            return p
+    return None
 
 
 def load_bodytrack(root: str | Path, scale: float = 1.0):
@@ -41,9 +51,10 @@ def load_bodytrack(root: str | Path, scale: float = 1.0):
     rig = read_bouguet_rig(cals, unit="mm")
     imgs, masks = [], []
     for i in range(1, len(cals) + 1):
-        img, fg = root / f"CAM{i}" / "image0000.bmp", root / f"FG{i}" / "image0000.bmp"
-        if not img.is_file() or not fg.is_file():
-            raise FileNotFoundError(f"data.path: camera {i} image or mask missing in {root}")
+        img, fg = _frame_file(root / f"CAM{i}"), _frame_file(root / f"FG{i}")
+        if img is None or fg is None:
+            raise FileNotFoundError(f"data.path: camera {i} image or mask (CAM{i}/FG{i}/"
+                                    f"image0000.bmp or .png) missing in {root}")
         try:
             a = Image.open(img).convert("L")
             m = Image.open(fg).convert("L")

@@ -8,11 +8,12 @@ working directory.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-__all__ = ["DataConfigError", "bundled_clip_path", "synthesized_sequence"]
+__all__ = ["DataConfigError", "bundled_clip_path", "check_seed", "synthesized_sequence"]
 
 
 class DataConfigError(ValueError):
@@ -35,6 +36,24 @@ def _path(value, key: str) -> str | None:
     return str(p)
 
 
+def check_seed(value, key: str = "seed") -> int:
+    """``value`` as a seed: an integer (``1.5``, ``True`` or ``"3"`` are errors naming ``key``;
+    ``int()`` would silently turn 1.5 into 1, the run of another seed)."""
+    import numbers
+
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise DataConfigError(f"{key}: expected an integer seed, got {value!r}")
+    return int(value)
+
+
+def _number(value, key: str, what: str, minimum: float, strict: bool) -> float:
+    ok = (not isinstance(value, bool) and isinstance(value, (int, float))
+          and math.isfinite(value) and (value > minimum if strict else value >= minimum))
+    if not ok:
+        raise DataConfigError(f"{key}: expected {what}, got {value!r}")
+    return float(value)
+
+
 def _int(value, key: str, minimum: int, allow_none: bool = False) -> int | None:
     if value is None and allow_none:
         return None
@@ -42,6 +61,11 @@ def _int(value, key: str, minimum: int, allow_none: bool = False) -> int | None:
         raise DataConfigError(f"{key}: expected an integer >= {minimum}"
                               f"{' or null' if allow_none else ''}, got {value!r}")
     return value
+
+
+def _short_map(joint_map: Mapping[str, str], n: int = 4) -> str:
+    items = [f"{h}={v}" for h, v in joint_map.items()]
+    return ", ".join(items[:n]) + (f", ... {len(items) - n} more" if len(items) > n else "")
 
 
 def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
@@ -55,14 +79,16 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
             ``skeleton_map`` (family name or map YAML; null = auto-detected), ``fps`` (resample
             to; null = the scenario's), ``skip_frames`` (leading source frames to drop),
             ``start`` (seconds to skip after resampling), ``frames`` (frames to keep; null =
-            all).
+            all; more than the clip has after ``start`` is an error).
         scenario: bundled scenario name or YAML path (see :func:`~torchmocap.data.load_scenario`).
         scenario_overrides: dotted or nested scenario keys to replace, e.g.
             ``{"imu.misalignment_deg": [5, 10], "body": "capsules"}``.
-        seed: seed of the synthesis.
+        seed: seed of the synthesis (an integer; 1.5 is an error, not seed 1).
         min_frames: fewest frames accepted (a tracker needs 2).
     Returns:
-        a :class:`~torchmocap.data.Sequence` with ``meta["clip"]`` describing the source.
+        a :class:`~torchmocap.data.Sequence` with ``meta["clip"]`` describing the source
+        (``guessed_joints``: the human31 joints mapped by name guessing when no skeleton map
+        matches the file; a warning says so).
     """
     from torchmocap.data import load_scenario, synthesize
     from torchmocap.data.subject import fit_subject
@@ -79,14 +105,12 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
         smap = str(Path(str(smap)).expanduser().absolute())
     skip = _int(clip.get("skip_frames") or 0, "data.clip.skip_frames", 0)
     frames = _int(clip.get("frames"), "data.clip.frames", min_frames, allow_none=True)
-    start = clip.get("start") or 0.0
-    if isinstance(start, bool) or not isinstance(start, (int, float)) or start < 0:
-        raise DataConfigError(f"data.clip.start: expected seconds >= 0, got {start!r}")
+    start = clip.get("start")
+    start = 0.0 if start is None else _number(start, "data.clip.start", "seconds >= 0", 0, False)
     fps_cfg = clip.get("fps")
-    if fps_cfg is not None and (isinstance(fps_cfg, bool) or not isinstance(fps_cfg, (int, float))
-                                or not fps_cfg > 0):
-        raise DataConfigError(f"data.clip.fps: expected a frame rate > 0 or null, got "
-                              f"{fps_cfg!r}")
+    if fps_cfg is not None:
+        _number(fps_cfg, "data.clip.fps", "a finite frame rate > 0 or null", 0, True)
+    seed = check_seed(seed, "data.seed")
     sc_name = str(scenario)
     if sc_name.endswith((".yaml", ".yml")):
         sc_name = str(Path(sc_name).expanduser().absolute())
@@ -99,15 +123,28 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
     if a >= motion.num_frames:
         raise DataConfigError(f"data.clip.start: {start} s is past the clip's end "
                               f"({motion.num_frames / fps:.2f} s)")
-    end = motion.num_frames if frames is None else min(motion.num_frames, a + frames)
+    available = motion.num_frames - a
+    if frames is not None and frames > available:
+        raise DataConfigError(f"data.clip.frames: {frames} frames requested but the clip has "
+                              f"{available} frames after start {start:g} s at {fps:g} fps "
+                              f"(set data.clip.frames <= {available}, or null for all)")
+    end = motion.num_frames if frames is None else a + frames
     if end - a < min_frames:
         raise DataConfigError(f"data.clip: only {end - a} frames after start {start} s; "
                               f"need >= {min_frames}")
     if a > 0 or end < motion.num_frames:
         motion = motion.slice(a, end)
     subject = fit_subject(motion, skeleton_map=smap)
-    seq = synthesize(subject, sc, seed=int(seed))
+    seq = synthesize(subject, sc, seed=seed)
     seq.meta["clip"] = {"name": clip.get("name"), "path": path, "asf": asf,
                         "skeleton_map": smap, "skip_frames": skip, "start": float(start),
-                        "fps": fps, "frames": seq.num_frames, "family": subject.family}
+                        "fps": fps, "frames": seq.num_frames, "family": subject.family,
+                        "guessed_joints": subject.info.get("guessed_joints", [])}
+    if subject.info.get("guessed_joints"):
+        import warnings
+
+        warnings.warn(f"data.clip.path: no skeleton map matches {Path(path).name}; its joints "
+                      f"were mapped onto human31 by their names "
+                      f"({_short_map(subject.info.get('joint_map', {}))}) - pass "
+                      "data.clip.skeleton_map=<map YAML> if that is wrong", stacklevel=2)
     return seq

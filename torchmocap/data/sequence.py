@@ -80,6 +80,9 @@ class GroundTruth:
         positions: ``(T, J, 3)`` exact joint positions (m).
         rotations: ``(T, J, 3, 3)`` exact bone frames ``R_TB``.
         joint_names: ``J`` names.
+        markers: optional ``(T, M, 3)`` positions of points on the observed body's skin (the
+            motion-capture markers of Hauberg & Pedersen's error measure, eq. 16).
+        marker_parts: ``M`` names of the joints whose body part carries each marker.
     """
 
     skeleton: dict[str, Any]
@@ -87,6 +90,8 @@ class GroundTruth:
     positions: Tensor
     rotations: Tensor
     joint_names: list[str]
+    markers: Tensor | None = None
+    marker_parts: list[str] = field(default_factory=list)
 
     def build_skeleton(self):
         """The :class:`~torchmocap.skeleton.Skeleton` (float64)."""
@@ -304,6 +309,9 @@ class Sequence:
                 arrays["gt_theta"] = g.theta.cpu().numpy()
                 arrays["gt_positions"] = g.positions.cpu().numpy()
                 arrays["gt_rotations"] = g.rotations.cpu().numpy()
+                if g.markers is not None:
+                    arrays["gt_markers"] = g.markers.cpu().numpy()
+                    man["ground_truth"]["marker_parts"] = list(g.marker_parts)
             man["meta"] = _json_safe(self.meta)
             with open(tmp / "arrays.npz", "wb") as f:
                 np.savez_compressed(f, **arrays)
@@ -388,6 +396,9 @@ class Sequence:
             seq.ground_truth = GroundTruth(_json_restore(g["skeleton"]), need("gt_theta"),
                                            need("gt_positions"), need("gt_rotations"),
                                            list(g["joint_names"]))
+            if "marker_parts" in g:
+                seq.ground_truth.markers = need("gt_markers")
+                seq.ground_truth.marker_parts = list(g["marker_parts"])
         if seq.num_frames != T:
             raise SequenceFormatError(f"{mpath}: num_frames {T} but arrays hold "
                                       f"{seq.num_frames} frames")

@@ -49,7 +49,10 @@ class Subject:
         residual: ``(T,)`` mean distance (m) between fitted and source joints per frame.
         rotation_residual: ``(T,)`` mean angle (rad) between fitted and source bone frames.
         fps: frame rate.
-        family: skeleton family of the source.
+        family: skeleton family of the source (``None`` when the joints were guessed).
+        info: ``lm_iterations``; ``joint_map`` (human31 joint -> source joint) and
+            ``guessed_joints`` (the human31 joints whose source was guessed from the joint
+            names because no skeleton map applies; empty with a map).
     """
 
     skeleton: Skeleton
@@ -126,7 +129,7 @@ def fit_subject(
         rotation_weight: metres per radian of the bone-orientation residuals (stage 2).
         prior_weight: pull towards the previous stage's pose (keeps unobservable DoF still).
     """
-    from torchmocap.io.skeleton_maps import map_joints, resolve_skeleton_map
+    from torchmocap.io.skeleton_maps import guessed_joints, map_joints, resolve_skeleton_map
 
     if clip.num_frames < 1:
         raise ValueError("clip: expected at least one frame, got an empty clip")
@@ -199,5 +202,7 @@ def fit_subject(
         rotation_residual=rot_res,
         fps=float(clip.fps),
         family=getattr(smap, "family", None),
-        info={"lm_iterations": fit.iterations},
+        info={"lm_iterations": fit.iterations,
+              "guessed_joints": guessed_joints(clip, skeleton_map),
+              "joint_map": {h: clip.joint_names[i] for h, i in idx.items()}},
     )

@@ -44,6 +44,7 @@ __all__ = [
     "VonMisesFisher",
     "vmf_log_normalizer",
     "vmf_mean_resultant_length",
+    "vmf_kappa_one_minus_a",
     "kappa_to_angle",
     "kappa_to_tangent_std",
     "sphere",
@@ -85,6 +86,64 @@ def vmf_log_normalizer(concentration: torch.Tensor, p: int) -> torch.Tensor:
 def vmf_mean_resultant_length(concentration: torch.Tensor, p: int) -> torch.Tensor:
     """``A_p(kappa) = E[mu.x] = I_{p/2}(kappa) / I_{p/2-1}(kappa)`` (``~ 1 - (p-1)/(2 kappa)``)."""
     return bessel_iv_ratio(p / 2 - 1, concentration)
+
+
+#: Hankel expansion of ``kappa (1 - A_p)`` from this kappa on (times ``(nu + 1)^2``).
+_HANKEL_MIN_KAPPA = 2000.0
+_HANKEL_TERMS = 12
+
+
+def _hankel_coefficients(nu: float, n: int) -> list[float]:
+    """``a_k(nu) = prod_{j<=k} (4 nu^2 - (2j - 1)^2) / (k! 8^k)``, ``k = 0..n-1``: the terms of
+    ``I_nu(x) ~ e^x / sqrt(2 pi x) sum_k (-1)^k a_k(nu) x^-k`` (large ``x``)."""
+    mu = 4.0 * nu * nu
+    out, a = [1.0], 1.0
+    for k in range(1, n):
+        a *= (mu - (2 * k - 1) ** 2) / (k * 8.0)
+        out.append(a)
+    return out
+
+
+def vmf_kappa_one_minus_a(concentration: torch.Tensor, p: int) -> torch.Tensor:
+    """``kappa (1 - A_p(kappa))`` without cancellation (``-> (p - 1)/2`` as ``kappa -> inf``).
+
+    ``kappa - kappa A_p`` loses every digit once ``A_p`` rounds to 1 (kappa ~ 1e8 in float32,
+    1e17 in float64). Below ``2000 (nu + 1)^2`` (``nu = p/2 - 1``) it is formed in float64 from
+    the Bessel ratio (relative error < 1e-12 there); beyond, from the ratio of the Hankel
+    expansions of ``I_nu`` and ``I_{nu+1}``, whose leading terms cancel exactly::
+
+        kappa (1 - A) = sum_{k>=1} (-1)^k (a_k(nu) - a_k(nu+1)) kappa^{1-k}
+                        / sum_{k>=0} (-1)^k a_k(nu) kappa^{-k}
+
+    (12 terms; the series' terms shrink like ``k nu^2 / (2 kappa)``).
+
+    Args:
+        concentration: ``(*)`` kappa >= 0.
+        p: ambient dimension (>= 2).
+    Returns:
+        ``(*)``, same dtype; differentiable.
+    """
+    nu = p / 2 - 1
+    dtype = concentration.dtype
+    k = concentration.to(torch.float64)
+    k_min = _HANKEL_MIN_KAPPA * (nu + 1) ** 2
+    large = k >= k_min
+    ks = torch.where(large, torch.zeros_like(k), k)
+    kl = torch.where(large, k, torch.full_like(k, k_min))
+    direct = ks - ks * bessel_iv_ratio(nu, ks)
+    a0 = _hankel_coefficients(nu, _HANKEL_TERMS)
+    a1 = _hankel_coefficients(nu + 1, _HANKEL_TERMS)
+    inv = 1.0 / kl
+    num = torch.zeros_like(kl)
+    den = torch.zeros_like(kl)
+    for j in range(_HANKEL_TERMS - 1, -1, -1):  # Horner in 1/kappa
+        sign = -1.0 if j % 2 else 1.0
+        den = den * inv + sign * a0[j]
+        if j >= 1:
+            num = num * inv + sign * (a0[j] - a1[j])
+    # num = sum_{k>=1} (-1)^k d_k kappa^{-(k-1)}
+    asym = num / den
+    return torch.where(large, asym, direct).to(dtype)
 
 
 def kappa_to_angle(concentration: float | torch.Tensor, quantile: float = 0.5) -> torch.Tensor:
@@ -328,9 +387,19 @@ class VonMisesFisher(Distribution):
         return base - 0.5 * self.concentration * d2
 
     def entropy(self) -> torch.Tensor:
-        """``-log C_p(kappa) - kappa A_p(kappa)``."""
+        """``H = -log C_p(kappa) - kappa A_p(kappa)``, accurate for ``kappa`` in ``[0, 1e30]``.
+
+        Written as ``-(log C_p + kappa) + kappa (1 - A_p)``: both parts are O(log kappa) and
+        O(1) (:func:`vmf_kappa_one_minus_a` has no cancellation), so the textbook form's
+        ``kappa - kappa A`` (0 in float32 beyond kappa ~ 1e8, in float64 beyond ~ 1e17) is
+        never formed. For large kappa ``H ~ (p-1)/2 log(2 pi e / kappa)`` (the entropy of the
+        tangent Gaussian of variance ``1/kappa``): -30.28 at kappa = 1e10, p = 4.
+        """
         k = self.concentration
-        return -self.log_normalizer() - k * vmf_mean_resultant_length(k, self.p)
+        nu = self.p / 2 - 1
+        log_c_plus_k = (nu * math.log(2.0) - (self.p / 2) * math.log(2 * math.pi)
+                        - log_bessel_ive_scaled_power(nu, k))
+        return -log_c_plus_k + vmf_kappa_one_minus_a(k, self.p)
 
     def sample(
         self, sample_shape: torch.Size | tuple[int, ...] = (),

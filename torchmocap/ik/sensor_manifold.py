@@ -73,33 +73,82 @@ class ManifoldSolution:
     gimbal: torch.Tensor
 
 
-def sensor_rotations(sensors: torch.Tensor, num_sensors: int) -> torch.Tensor:
+def _rotation_tol(dtype: torch.dtype) -> float:
+    """Largest accepted deviation of a rotation from orthonormality / a quaternion from unit
+    norm: ~1000 ulp of float32 (rounding of long products), 1e-6 in float64."""
+    if dtype == torch.float64:
+        return 1e-6
+    if dtype == torch.float32:
+        return 1e-4
+    return 1e-2  # half precisions
+
+
+def _first_bad(bad: torch.Tensor) -> str:
+    """``"sensor s (batch index i)"`` of the first True entry of ``bad (*, S)``."""
+    idx = [int(v) for v in torch.nonzero(bad)[0].tolist()]
+    where = f"sensor {idx[-1]}"
+    return where if len(idx) == 1 else f"{where} (batch index {tuple(idx[:-1])})"
+
+
+def sensor_rotations(sensors: torch.Tensor, num_sensors: int,
+                     name: str = "sensors") -> torch.Tensor:
     """Validate sensor orientations and return rotation matrices ``(*, S, 3, 3)``.
+
+    Rotation matrices must be orthonormal with determinant +1 (``|R Rᵀ - I|`` and ``|det R - 1|``
+    at most 1e-4 in float32, 1e-6 in float64): ``2 R``, zero matrices, reflections or skewed
+    matrices would give valid-looking, wrong joint angles. Quaternions must be finite and of
+    unit norm within the same tolerance. The check is a few elementwise passes and one host
+    sync; ``SensorManifold.inverse(validate=False)`` skips it in hot loops.
 
     Args:
         sensors: ``(*, S, 3, 3)`` rotation matrices or ``(*, S, 4)`` unit quaternions (w, x, y, z).
         num_sensors: expected ``S``.
+        name: the argument's name in error messages (``sensors``, ``sensors0``, ``noise``).
     """
     if not isinstance(sensors, torch.Tensor):
-        raise TypeError(f"sensors: expected a torch.Tensor, got {type(sensors).__name__}")
+        raise TypeError(f"{name}: expected a torch.Tensor, got {type(sensors).__name__}")
+    if not sensors.is_floating_point():
+        raise TypeError(f"{name}: expected a floating-point tensor, got {sensors.dtype}")
+    tol = _rotation_tol(sensors.dtype)
     if sensors.dim() >= 2 and sensors.shape[-1] == 4:
         if sensors.shape[-2] != num_sensors:
-            raise ValueError(f"sensors: expected {num_sensors} sensors (*, {num_sensors}, 4), "
+            raise ValueError(f"{name}: expected {num_sensors} sensors (*, {num_sensors}, 4), "
                              f"got shape {tuple(sensors.shape)}")
-        if not bool(torch.isfinite(sensors).all()):
-            raise ValueError("sensors: expected finite quaternions, found NaN or inf")
-        tol = 1e-6 if sensors.dtype == torch.float64 else 1e-4
-        if float((sensors.norm(dim=-1) - 1).abs().max()) > tol:
-            raise ValueError(f"sensors: expected unit quaternions (w, x, y, z), tolerance {tol}")
+        norm = sensors.norm(dim=-1)
+        dev = (norm - 1).abs()
+        if sensors.numel() and not float(dev.max()) <= tol:  # one sync; NaN fails it too
+            if not bool(torch.isfinite(sensors).all()):
+                raise ValueError(f"{name}: expected finite quaternions, found NaN or inf")
+            bad = dev > tol
+            i = tuple(torch.nonzero(bad)[0].tolist())
+            raise ValueError(f"{name}: expected unit quaternions (w, x, y, z), tolerance {tol}; "
+                             f"{_first_bad(bad)} has norm {float(norm[i]):.6g}")
         return quaternion_to_matrix(sensors)
     if sensors.dim() >= 3 and sensors.shape[-2:] == (3, 3):
         if sensors.shape[-3] != num_sensors:
-            raise ValueError(f"sensors: expected {num_sensors} sensors (*, {num_sensors}, 3, 3), "
+            raise ValueError(f"{name}: expected {num_sensors} sensors (*, {num_sensors}, 3, 3), "
                              f"got shape {tuple(sensors.shape)}")
-        if not bool(torch.isfinite(sensors).all()):
-            raise ValueError("sensors: expected finite rotation matrices, found NaN or inf")
+        if sensors.numel():
+            # R Rᵀ = I and det R = (r0 x r1) . r2 = +1; one sync for both (NaN fails it too)
+            gram = sensors @ sensors.transpose(-1, -2)
+            eye = torch.eye(3, dtype=sensors.dtype, device=sensors.device)
+            orth = (gram - eye).abs().amax(dim=(-1, -2))
+            det = (torch.linalg.cross(sensors[..., 0, :], sensors[..., 1, :])
+                   * sensors[..., 2, :]).sum(-1)
+            dev = torch.maximum(orth, (det - 1).abs())
+            worst = float(dev.max())
+            if not worst <= tol:
+                if not bool(torch.isfinite(sensors).all()):
+                    raise ValueError(f"{name}: expected finite rotation matrices, found NaN or "
+                                     "inf")
+                bad = dev > tol
+                i = tuple(torch.nonzero(bad)[0].tolist())
+                raise ValueError(
+                    f"{name}: expected rotation matrices (R Rᵀ = I, det R = +1, tolerance {tol}); "
+                    f"{_first_bad(bad)} has |R Rᵀ - I| = {float(orth[i]):.3g}, "
+                    f"det = {float(det[i]):.6g}")
         return sensors
-    raise ValueError(f"sensors: expected (*, {num_sensors}, 3, 3) rotations or "
+    raise ValueError(f"{name}: expected (*, {num_sensors}, 3, 3) rotations or "
                      f"(*, {num_sensors}, 4) quaternions, got {tuple(sensors.shape)}")
 
 
@@ -400,7 +449,7 @@ class SensorManifold(nn.Module):
         """
         if theta0.dim() != 1:
             raise ValueError(f"theta0: expected a single pose (D,), got {tuple(theta0.shape)}")
-        R_ts = sensor_rotations(sensors0, self.num_sensors)
+        R_ts = sensor_rotations(sensors0, self.num_sensors, "sensors0")
         if R_ts.dim() != 3:
             raise ValueError(f"sensors0: expected a single frame, got {tuple(sensors0.shape)}")
         R_tb = self.bone_orientations(theta0.to(R_ts.dtype))
@@ -504,7 +553,7 @@ class SensorManifold(nn.Module):
                 raise ValueError("x_a: expected finite values, found NaN or inf")
             R_ts = sensor_rotations(sensors, S)
             if noise is not None:
-                sensor_rotations(noise, S)  # same checks (unit quaternions / shape)
+                sensor_rotations(noise, S, "noise")  # same checks as the sensors
         else:
             R_ts = quaternion_to_matrix(sensors) if sensors.shape[-1] == 4 else sensors
         dtype = x_a.dtype

@@ -496,8 +496,9 @@ def read_amc(
     path = str(path)
     if not isinstance(asf, AsfSkeleton):
         asf = read_asf(asf)
-    if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
-        raise ValueError(f"fps: expected a positive number, got {fps!r}")
+    if isinstance(fps, bool) or not (isinstance(fps, (int, float)) and math.isfinite(fps)
+                                     and fps > 0):
+        raise ValueError(f"fps: expected a positive finite frame rate, got {fps!r}")
     root_vals, bone_vals, values_rad = _parse_amc(_read_text(path), asf, path)
     T = root_vals.shape[0]
     if not 0 <= skip_frames < T:

@@ -34,6 +34,10 @@ __all__ = ["read_bvh", "write_bvh", "parse_bvh"]
 _AXIS_INDEX = {"x": 0, "y": 1, "z": 2}
 _CHANNEL_RE = re.compile(r"^([xyz])(position|rotation)$", re.IGNORECASE)
 _FRAMES_RE = re.compile(r"^frames\s*:?\s*(\S+)\s*$", re.IGNORECASE)
+#: Plausible BVH frame times (seconds): 100 kHz to one frame a minute. ``Frame Time: 1e300``
+#: would otherwise be a clip at 1e-300 fps (0.0 in a report) that nothing can use.
+MIN_FRAME_TIME = 1e-5
+MAX_FRAME_TIME = 60.0
 _FRAME_TIME_RE = re.compile(r"^frame\s+time\s*:?\s*(\S+)\s*$", re.IGNORECASE)
 
 
@@ -222,6 +226,11 @@ def _parse_motion(lines: list[str], start: int, n_channels: int, path: str):
         raise MotionFormatError(f"frame time {m.group(1)!r} is not a number", path, ln_t) from None
     if not (math.isfinite(dt) and dt > 0 and math.isfinite(1.0 / dt)):
         raise MotionFormatError(f"frame time must be positive, got {m.group(1)}", path, ln_t)
+    if not MIN_FRAME_TIME <= dt <= MAX_FRAME_TIME:
+        raise MotionFormatError(
+            f"frame time {m.group(1)} s is not a plausible frame time: expected "
+            f"{MIN_FRAME_TIME:g} to {MAX_FRAME_TIME:g} s ({1 / MAX_FRAME_TIME:g} to "
+            f"{1 / MIN_FRAME_TIME:g} frames per second)", path, ln_t)
     data = body[2:]
     if len(data) < n_frames:
         last = data[-1][0] if data else ln_t

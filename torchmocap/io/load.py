@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 from torchmocap.io.errors import MotionFormatError
@@ -45,13 +46,18 @@ def load_motion(
         asf: the skeleton of an AMC file.
         unit: metres per file length unit (default: from the file or its skeleton map).
         skip_frames: leading frames to drop (e.g. 1 for the cgspeed CMU MotionBuilder T-pose).
-        fps: frame rate of an AMC (default 120); ignored for BVH (the file states it).
+        fps: frame rate of an AMC (``None``: 120, the CMU and HDM05 rate); ignored for BVH
+            (the file states it). Must be positive and finite when given (``fps=0`` is an
+            error, not the default).
         skeleton_map: family name or map YAML (default: auto-detected); for BVH it also
             supplies the length unit.
     """
     from torchmocap.io.asf import read_amc, read_asf
     from torchmocap.io.bvh import read_bvh
 
+    if fps is not None and (isinstance(fps, bool) or not isinstance(fps, (int, float))
+                            or not math.isfinite(fps) or fps <= 0):
+        raise ValueError(f"fps: expected a positive finite frame rate or None, got {fps!r}")
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix == ".bvh":
@@ -61,7 +67,7 @@ def load_motion(
         return read_amc(
             path,
             asf_path,
-            fps=fps or 120.0,
+            fps=120.0 if fps is None else float(fps),
             skip_frames=skip_frames,
             unit=unit,
             skeleton_map=skeleton_map,

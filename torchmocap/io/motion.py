@@ -121,7 +121,9 @@ class MotionClip:
                 raise ValueError(
                     f"local_translations[{name!r}]: expected shape ({T}, 3), got {tuple(tr.shape)}"
                 )
-        if not (isinstance(self.fps, (int, float)) and math.isfinite(self.fps) and self.fps > 0):
+        if isinstance(self.fps, bool) or not (
+            isinstance(self.fps, (int, float)) and math.isfinite(self.fps) and self.fps > 0
+        ):
             raise ValueError(f"fps: expected a positive finite number, got {self.fps!r}")
         for name, t in (
             ("offsets", self.offsets),

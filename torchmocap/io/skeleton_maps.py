@@ -37,11 +37,15 @@ from torchmocap.io.errors import SkeletonMapError
 
 __all__ = [
     "HUMAN31_JOINTS",
+    "JointGuess",
     "SkeletonMap",
     "chain_height",
     "detect_family",
     "guess_joint_map",
+    "guess_joints",
+    "guessed_joints",
     "human31_positions",
+    "joint_map_report",
     "known_families",
     "load_skeleton_map",
     "map_joints",
@@ -263,21 +267,229 @@ def detect_family(
     return None if best is None else best.family
 
 
-def guess_joint_map(clip_or_names) -> dict[str, str]:
-    """Best-effort human31 -> source names by exact (case-insensitive) match with any name the
-    built-in maps use for that joint, each source joint used once (so DAZ's ``head_top: head``
-    cannot turn a plain ``Head`` into the head top); the joints left out are unmappable."""
-    names = _names_of(clip_or_names)
-    low = {n.lower(): n for n in names}
-    out: dict[str, str] = {}
-    for h in HUMAN31_JOINTS:
-        aliases = [h] + [_load_builtin(f).joints.get(h, "") for f in known_families()]
-        for a in aliases:
-            src = low.get(a.lower()) if a else None
-            if src is not None and src not in out.values():  # one human31 joint per source
-                out[h] = src
+# ------------------------------------------------------------------------- name guessing
+# A source joint name is split into words ("mixamorig:LeftUpLeg" -> left, up, leg;
+# "UpperArm_L" -> upper, arm, l; "thigh.L" -> thigh, l; "lShldr" -> l, shldr); side words
+# (left/right/l/r) give the side, trailing numbers an index, "end"/"tip"/"nub" mark an end site
+# ("Head_end"), a few decorations (jnt, bip01, mixamorig, def) are dropped, and the remaining
+# words joined are the *core* ("upperarm", "upleg", "toebase") compared with the synonyms below.
+_SIDE_WORDS = {"l": "l", "left": "l", "r": "r", "right": "r"}
+_END_WORDS = {"end", "tip", "nub"}
+_DECORATIONS = {"mixamorig", "bip", "jnt", "j", "bn", "bone", "def"}
+_TORSO = {"spine", "chest", "torso", "abdomen", "waist", "back", "lowerback", "upperback",
+          "midback", "middleback", "thorax", "upperchest", "trunk"}
+_NECK = {"neck", "lowerneck", "neckbase", "upperneck"}
+_CLAVICLE = {"clavicle", "collar", "collarbone", "scapula"}
+# human31 limb joint -> tiers of cores; the first tier with a candidate decides (two different
+# cores in that tier are ambiguous). "shoulder" is the upper-arm joint only when no upper-arm
+# name exists (it is the clavicle in MotionBuilder/Mixamo skeletons, which have "Arm" too).
+_LIMB_TIERS: dict[str, tuple[frozenset, ...]] = {
+    "shoulder": (frozenset({"upperarm", "uparm", "arm", "humerus"}),
+                 frozenset({"shoulder", "shldr"})),
+    "elbow": (frozenset({"forearm", "lowerarm", "lowarm", "elbow", "radius", "ulna"}),),
+    "wrist": (frozenset({"wrist"}), frozenset({"hand"})),
+    "hand": (frozenset({"hand", "fingers", "handtip", "palm"}),
+             frozenset({"middle", "mid", "handmiddle", "middlefinger", "finger", "fingerbase"})),
+    "hip": (frozenset({"upleg", "upperleg", "thigh", "femur"}), frozenset({"hip"})),
+    "knee": (frozenset({"lowerleg", "lowleg", "leg", "shin", "calf", "knee", "tibia", "shank",
+                        "crus"}),),
+    "ankle": (frozenset({"ankle"}), frozenset({"foot"})),
+    "toe": (frozenset({"toebase", "toe", "toes", "ball", "forefoot"}), frozenset({"foot"})),
+}
+_KNOWN_CORES = (_TORSO | _NECK | _CLAVICLE | {"hips", "pelvis", "hip", "root", "head",
+                                              "headtop"}
+                | {c for tiers in _LIMB_TIERS.values() for t in tiers for c in t})
+_WORD_RE = re.compile(r"[A-Z]+(?=[A-Z][a-z])|[A-Z]?[a-z]+|[A-Z]+|\d+")
+
+
+@dataclass(frozen=True)
+class _Name:
+    """A source joint name taken apart: side ("l", "r" or None), core, index, end-site flag."""
+
+    name: str
+    side: str | None
+    core: str
+    index: int
+    is_end: bool
+
+
+def _parse_name(name: str) -> _Name:
+    base = name.rsplit(":", 1)[-1]  # namespaces: "mixamorig:LeftArm"
+    words = [w.lower() for w in _WORD_RE.findall(base)]
+    sides = {_SIDE_WORDS[w] for w in words if w in _SIDE_WORDS}
+    side = sides.pop() if len(sides) == 1 else None
+    words = [w for w in words if w not in _SIDE_WORDS]
+    is_end = bool(words) and words[-1] in _END_WORDS
+    if is_end:
+        words = words[:-1]
+    index = -1
+    if words and words[-1].isdigit():
+        index = int(words[-1])
+    words = [w for w in words if not w.isdigit() and w not in _DECORATIONS]
+    core = "".join(words)
+    if side is None and not sides and core not in _KNOWN_CORES:
+        # one lower-case word: "lfemur", "rtoes", "upperarml" (a known core with a side letter)
+        for pre, sd in (("left", "l"), ("right", "r"), ("l", "l"), ("r", "r")):
+            if core.startswith(pre) and core[len(pre):] in _KNOWN_CORES:
+                side, core = sd, core[len(pre):]
                 break
-    return out
+            if core.endswith(pre) and core[:-len(pre)] in _KNOWN_CORES:
+                side, core = sd, core[:-len(pre)]
+                break
+    return _Name(name, side, core, index, is_end)
+
+
+@dataclass(frozen=True)
+class JointGuess:
+    """The result of :func:`guess_joints`.
+
+    Attributes:
+        joints: human31 joint -> source joint name, for every joint that could be guessed.
+        missing: human31 joints without any candidate.
+        ambiguous: human31 joint -> its candidate source joints (two or more: refused).
+    """
+
+    joints: dict[str, str]
+    missing: tuple[str, ...]
+    ambiguous: dict[str, tuple[str, ...]]
+
+    @property
+    def complete(self) -> bool:
+        return not self.missing and not self.ambiguous
+
+
+def _structure(clip_or_names, names: list[str]):
+    """Parents and rest positions of a clip (``None`` for plain names)."""
+    parents = getattr(clip_or_names, "parents", None)
+    offsets = getattr(clip_or_names, "offsets", None)
+    if parents is None or offsets is None:
+        return None, None
+    pos = [None] * len(names)
+    off = offsets.detach().to(torch.float64).cpu()
+    for j, p in enumerate(parents):
+        pos[j] = off[j] if p < 0 else pos[p] + off[j]
+    return list(parents), torch.stack(pos)
+
+
+def guess_joints(clip_or_names) -> JointGuess:
+    """Guess which source joint plays each human31 joint from the names alone.
+
+    Understands the common side conventions — ``LeftArm``/``RightArm``, ``LArm``, ``l_arm``,
+    ``Arm_L``, ``arm.L``, ``ArmL``, ``lhumerus``, ``mixamorig:`` and other ``namespace:``
+    prefixes, any case — and limb synonyms: upper arm / arm / humerus (shoulder joint),
+    forearm / lower arm, wrist / hand, upper leg / up leg / thigh / femur (hip joint), lower leg
+    / leg / shin / calf / knee, ankle / foot, toe / toes / toe base / ball, hips / pelvis / hip
+    / root, spine / chest / torso / abdomen / back (the first torso joint above the pelvis),
+    neck (the lowest neck joint), head, and the head's end site for ``head_top`` (the hand's
+    end site or a middle finger for ``l_hand``, the foot's for ``l_toe``). An end site of zero
+    length (at its parent's position) is used only when nothing else qualifies, as the built-in
+    CMU21 map does. When two *different* names qualify for one human31 joint (say
+    ``Arm_L`` and ``UpperArm_L``) the joint is reported as ambiguous with both candidates rather
+    than picked.
+
+    Args:
+        clip_or_names: a :class:`MotionClip` (its hierarchy breaks ties along chains and drops
+            zero-length end sites) or a list of joint names.
+    """
+    names = _names_of(clip_or_names)
+    parsed = [_parse_name(n) for n in names]
+    parents, pos = _structure(clip_or_names, names)
+    kids = [0] * len(names)
+    if parents is not None:
+        for p in parents:
+            if p >= 0:
+                kids[p] += 1
+
+    def degenerate(i: int) -> bool:
+        # a leaf at its parent's position (a zero-length end site) is a last resort
+        return (pos is not None and kids[i] == 0 and parents[i] >= 0
+                and float(pos[i].sub(pos[parents[i]]).norm()) < 1e-9)
+
+    zero = [degenerate(i) for i in range(len(names))]
+    out: dict[str, str] = {}
+    ambiguous: dict[str, tuple[str, ...]] = {}
+    used: set[int] = set()
+
+    def pick(h: str, cands: list[int], chain: bool = False) -> int | None:
+        cands = [i for i in cands if i not in used]
+        cands = [i for i in cands if not zero[i]] or cands
+        if not cands:
+            return None
+        cores = {parsed[i].core for i in cands}
+        if len(cores) > 1 and not chain:
+            ambiguous[h] = tuple(names[i] for i in cands)
+            return None
+        if len(cands) > 1 and not chain:
+            # one core several times: a chain ("Mid1, Mid2") picks its first, else ambiguous
+            on_chain = parents is not None and all(
+                _is_ancestor(parents, a, b) for a, b in zip(cands[:-1], cands[1:]))
+            by_index = len({parsed[i].index for i in cands}) == len(cands)
+            if not (on_chain or (parents is None and by_index)):
+                ambiguous[h] = tuple(names[i] for i in cands)
+                return None
+            cands = sorted(cands, key=lambda i: (parsed[i].index, i)) if parents is None \
+                else cands
+        i = cands[0]
+        out[h] = names[i]
+        used.add(i)
+        return i
+
+    def find(cores, side=None, end=False, sided=None) -> list[int]:
+        return [i for i, n in enumerate(parsed)
+                if n.core in cores and n.is_end == end
+                and (n.side == side if sided is None else (n.side is not None) == sided)]
+
+    # torso: pelvis, spine, neck, head, head top (no side)
+    pelvis = pick("pelvis", find({"hips", "pelvis", "hip"}) or find({"root"}))
+    neck = pick("neck", find(_NECK), chain=True)
+    torso = find(_TORSO)
+    if pos is not None and pelvis is not None:  # first torso joint clearly above the pelvis
+        rise = [float((pos[i] - pos[pelvis]).norm()) for i in torso]
+        ref = float((pos[neck] - pos[pelvis]).norm()) if neck is not None else max(rise or [0])
+        torso = [i for i, r in zip(torso, rise) if r > 0.02 * ref] or torso
+    pick("spine", torso, chain=True)
+    head = pick("head", find({"head"}))
+    pick("head_top", find({"headtop"}) + find({"headtop"}, end=True)
+         or [i for i in find({"head"}, end=True)
+             if parents is None or head is None or parents[i] == head])
+    # limbs, per side
+    for sd in ("l", "r"):
+        def tiers(kind: str, extra: list[int] | None = None, sd: str = sd) -> list[int]:
+            for t in _LIMB_TIERS[kind]:
+                c = [i for i in find(t, side=sd) if i not in used]
+                if c:
+                    return c
+            return extra or []
+
+        pick(f"{sd}_shoulder", tiers("shoulder"))
+        pick(f"{sd}_elbow", tiers("elbow"))
+        wrist = pick(f"{sd}_wrist", tiers("wrist"))
+        hand_end = [i for i in find({"hand", "wrist"}, side=sd, end=True)
+                    if parents is None or parents[i] == wrist]
+        pick(f"{sd}_hand", hand_end or tiers("hand"), chain=True)
+        pick(f"{sd}_hip", tiers("hip"))
+        pick(f"{sd}_knee", tiers("knee"))
+        ankle = pick(f"{sd}_ankle", tiers("ankle"))
+        toe_end = [i for i in find({"foot", "ankle"}, side=sd, end=True)
+                   if parents is None or parents[i] == ankle]
+        pick(f"{sd}_toe", tiers("toe", toe_end))
+    missing = tuple(h for h in HUMAN31_JOINTS if h not in out and h not in ambiguous)
+    return JointGuess({h: out[h] for h in HUMAN31_JOINTS if h in out}, missing,
+                      {h: ambiguous[h] for h in HUMAN31_JOINTS if h in ambiguous})
+
+
+def _is_ancestor(parents: list[int], a: int, b: int) -> bool:
+    while b >= 0:
+        b = parents[b]
+        if b == a:
+            return True
+    return False
+
+
+def guess_joint_map(clip_or_names) -> dict[str, str]:
+    """human31 -> source names guessed from the names (:func:`guess_joints`); joints that are
+    missing or ambiguous are left out."""
+    return guess_joints(clip_or_names).joints
 
 
 _SIDE_RE = re.compile(r"^(?:[Ll]eft|[Ll](?=[_A-Z.]))|[_.][Ll]$")
@@ -329,11 +541,18 @@ def _suggestions(h: str, names: Sequence[str], taken: Iterable[str] = (), n: int
 
 
 def _unmappable_error(
-    names: Sequence[str], missing: Sequence[str], what: str, taken: Iterable[str] = ()
+    names: Sequence[str], missing: Sequence[str], what: str, taken: Iterable[str] = (),
+    ambiguous: Mapping[str, Sequence[str]] | None = None,
 ) -> SkeletonMapError:
-    lines = [f"{what}: cannot map {len(missing)} human31 joint(s): {list(missing)}"]
-    for h in missing:
-        lines.append(f"  {h}: closest source joints {_suggestions(h, names, taken) or '(none)'}")
+    ambiguous = dict(ambiguous or {})
+    bad = [h for h in HUMAN31_JOINTS if h in set(missing) | set(ambiguous)]
+    lines = [f"{what}: cannot map {len(bad)} human31 joint(s): {bad}"]
+    for h in bad:
+        if h in ambiguous:
+            lines.append(f"  {h}: ambiguous, candidates {list(ambiguous[h])}")
+        else:
+            lines.append(
+                f"  {h}: closest source joints {_suggestions(h, names, taken) or '(none)'}")
     lines.append(
         "Write a skeleton map YAML (family, unit, detect, joints: {human31_name: source_name}; "
         "see docs/skeleton_maps.md) and pass it as skeleton_map=PATH."
@@ -356,34 +575,72 @@ _resolve = resolve_skeleton_map  # kept: torchmocap.data.subject imports this na
 
 
 def unmapped_joints(clip, skeleton_map: str | Path | SkeletonMap | None = None) -> list[str]:
-    """human31 joints that the clip's map (or, without one, name guessing) cannot provide."""
+    """human31 joints that the clip's map (or, without one, name guessing) cannot provide
+    (missing or ambiguous names)."""
     names = set(_names_of(clip))
     smap = resolve_skeleton_map(clip, skeleton_map)
     if smap is None:
-        guessed = guess_joint_map(clip)
-        return [h for h in HUMAN31_JOINTS if h not in guessed]
+        g = guess_joints(clip)
+        return [h for h in HUMAN31_JOINTS if h not in g.joints]
     return [h for h in HUMAN31_JOINTS if smap.joints.get(h) not in names]
+
+
+def joint_map_report(clip, skeleton_map: str | Path | SkeletonMap | None = None
+                     ) -> dict[str, object]:
+    """How ``clip``'s joints map onto human31, as plain data (``torchmocap-info`` prints it).
+
+    Returns:
+        ``{"source": "skeleton_map" | "guessed", "family": str | None,
+        "joints": {human31: source name or None}, "guessed_joints": [human31 names whose source
+        was guessed from the names], "unmapped_joints": [...], "ambiguous": {human31:
+        [candidates]}}``.
+    """
+    names = set(_names_of(clip))
+    smap = resolve_skeleton_map(clip, skeleton_map)
+    if smap is None:
+        g = guess_joints(clip)
+        return {"source": "guessed", "family": None,
+                "joints": {h: g.joints.get(h) for h in HUMAN31_JOINTS},
+                "guessed_joints": list(g.joints),
+                "unmapped_joints": [h for h in HUMAN31_JOINTS if h not in g.joints],
+                "ambiguous": {h: list(v) for h, v in g.ambiguous.items()}}
+    joints = {h: (smap.joints.get(h) if smap.joints.get(h) in names else None)
+              for h in HUMAN31_JOINTS}
+    return {"source": "skeleton_map", "family": smap.family, "joints": joints,
+            "guessed_joints": [], "unmapped_joints": [h for h, v in joints.items() if v is None],
+            "ambiguous": {}}
+
+
+def guessed_joints(clip, skeleton_map: str | Path | SkeletonMap | None = None) -> list[str]:
+    """human31 joints whose source joint :func:`map_joints` takes from name guessing (all of
+    them when no skeleton map applies, none with a map)."""
+    if resolve_skeleton_map(clip, skeleton_map) is not None:
+        return []
+    return list(guess_joints(clip).joints)
 
 
 def map_joints(clip, skeleton_map: str | Path | SkeletonMap | None = None) -> dict[str, int]:
     """human31 joint -> index of its source joint in ``clip``, for every human31 joint.
 
+    Without a skeleton map the correspondence is guessed from the joint names
+    (:func:`guess_joints`; :func:`guessed_joints` says when).
+
     Raises:
-        SkeletonMapError: no map matches (listing what name guessing cannot map, with the
-            closest source names and how to write a map), or the map names joints the clip
-            lacks.
+        SkeletonMapError: no map matches and name guessing leaves joints unmapped or ambiguous
+            (listing the candidates, or the closest source names and how to write a map), or
+            the map names joints the clip lacks.
     """
     names = _names_of(clip)
     smap = resolve_skeleton_map(clip, skeleton_map)
     what = getattr(clip, "source_path", None) or "skeleton"
     if smap is None:
-        guessed = guess_joint_map(clip)
-        missing = [h for h in HUMAN31_JOINTS if h not in guessed]
-        if missing:
+        g = guess_joints(clip)
+        if not g.complete:
             raise _unmappable_error(
-                names, missing, f"{what} (no skeleton map matches)", guessed.values()
+                names, g.missing, f"{what} (no skeleton map matches; joint names guessed)",
+                g.joints.values(), g.ambiguous,
             )
-        return {h: names.index(guessed[h]) for h in HUMAN31_JOINTS}
+        return {h: names.index(g.joints[h]) for h in HUMAN31_JOINTS}
     missing = [h for h in HUMAN31_JOINTS if smap.joints.get(h) not in names]
     if missing:
         taken = [v for k, v in smap.joints.items() if k not in missing]

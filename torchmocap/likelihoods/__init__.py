@@ -2,7 +2,8 @@
 
 The interface (:class:`Likelihood`, :class:`Poses`, :class:`WeightedSum`, :class:`FrameEnergy`)
 is in :mod:`torchmocap.likelihoods.base`; terms: multi-view silhouette (hard/smooth, Pons-Moll
-eq. 17 V_silh), appearance (colour consistency, V_app), sensor orientation (the S of GS/LS).
+eq. 17 V_silh), appearance (colour consistency, V_app), sensor orientation (the S of GS/LS);
+point cloud (Hauberg & Pedersen eq. 15).
 """
 
 from torchmocap.likelihoods.appearance import (
@@ -19,6 +20,7 @@ from torchmocap.likelihoods.base import (
     WeightedSum,
     check_energy,
 )
+from torchmocap.likelihoods.depth import PointCloudLikelihood, point_cloud_energy
 from torchmocap.likelihoods.joints2d import (
     ROBUST_COSTS,
     EmptyEvidenceError,
@@ -49,6 +51,7 @@ __all__ = [
     "Joints2DObservation",
     "Likelihood",
     "OrientationLikelihood",
+    "PointCloudLikelihood",
     "Poses",
     "ROBUST_COSTS",
     "SilhouetteLikelihood",
@@ -60,6 +63,7 @@ __all__ = [
     "joints2d_energy",
     "limit_excess",
     "orientation_energy",
+    "point_cloud_energy",
     "prepare_images",
     "prepare_silhouettes",
     "render_capsule_silhouettes",

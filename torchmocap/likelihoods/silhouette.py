@@ -66,14 +66,38 @@ class SilhouetteObservation:
 def prepare_silhouettes(masks: torch.Tensor, num_samples: int = 150, blur: float = 1.5,
                         view_valid: torch.Tensor | None = None,
                         dtype: torch.dtype = torch.float32) -> SilhouetteObservation:
-    """Prepare ``masks (C, H, W)`` (bool or 0/1 or 0/255) for :func:`silhouette_energy`."""
+    """Prepare ``masks (C, H, W)`` for :func:`silhouette_energy`.
+
+    The mask contract (foreground = 1): ``bool``; any numeric dtype whose values are exactly
+    0 and 1; or ``uint8`` whose values are exactly 0 and 255 (8-bit image files). Anything else
+    — soft or blurred masks (0.5, 1.196), 0/255 in another dtype, labels (2), NaN or infinity —
+    is a ``ValueError`` naming ``masks`` and the values found: a silent threshold would read
+    such masks wrongly. Threshold soft masks yourself (``masks > 0.5``). The check is one
+    reduction over the masks (they are prepared once per frame).
+    """
     if not isinstance(masks, torch.Tensor) or masks.dim() != 3:
         raise ValueError(f"masks: expected a (C, H, W) tensor, got "
                          f"{getattr(masks, 'shape', type(masks).__name__)}")
-    m = masks.to(dtype)
-    if m.numel() and float(m.max()) > 1:
-        m = m / 255.0
-    m = (m > 0.5).to(dtype)
+    if masks.dtype == torch.bool:
+        m = masks.to(dtype)
+    else:
+        if masks.is_complex():
+            raise ValueError(f"masks: expected a bool mask, 0/1 values or uint8 0/255; found "
+                             f"dtype {masks.dtype}")
+        one = 255 if masks.dtype == torch.uint8 else 1
+        # all values 0 or `one` (uint8: 0/1 or 0/255, not mixed); NaN and inf fail both tests
+        top = masks.amax() if masks.numel() else None
+        if top is not None:
+            top_v = top.item()
+            if top_v not in (0, 1, one) or not bool(((masks == 0) | (masks == top)).all()):
+                vals = torch.unique(masks.detach().flatten().cpu())
+                shown = ", ".join(f"{v:g}" for v in vals[:8].tolist())
+                more = f", ... ({vals.numel()} distinct)" if vals.numel() > 8 else ""
+                hint = "" if masks.dtype == torch.uint8 or top_v != 255 else \
+                    "; 0/255 is read as uint8 only"
+                raise ValueError(f"masks: expected a bool mask, 0/1 values or uint8 0/255; "
+                                 f"found values {{{shown}{more}}} ({masks.dtype}){hint}")
+        m = (masks != 0).to(dtype)
     C, H, W = m.shape
     valid = torch.ones(C, dtype=torch.bool) if view_valid is None else view_valid.bool().cpu()
     pix = torch.zeros(C, num_samples, 2, dtype=dtype)

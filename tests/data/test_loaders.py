@@ -1,0 +1,86 @@
+"""``synthesized_sequence`` (the ``data`` config's target): settings are checked, never coerced."""
+
+from __future__ import annotations
+
+import sys
+import warnings
+from pathlib import Path
+
+import pytest
+
+from torchmocap.data.loaders import DataConfigError, check_seed, synthesized_sequence
+
+FAST = {"silhouettes.enabled": False, "images.enabled": False, "depth.enabled": False,
+        "joints2d.enabled": False}
+
+
+def _clip(**kw):
+    base = {"name": "t", "path": None, "asf": None, "skeleton_map": None, "fps": 25,
+            "skip_frames": 0, "start": 0.0, "frames": 3}
+    return {**base, **kw}
+
+
+@pytest.mark.parametrize("key, value", [
+    ("fps", 0), ("fps", -25), ("fps", float("nan")), ("fps", float("inf")), ("fps", True),
+    ("start", -1.0), ("start", float("nan")), ("start", float("inf")), ("start", True),
+    ("frames", 0), ("frames", 2.5), ("skip_frames", -1),
+])
+def test_exception_clip_settings(key, value):
+    with pytest.raises(DataConfigError, match=rf"^data\.clip\.{key}: expected"):
+        synthesized_sequence(_clip(**{key: value}), "clean", FAST, seed=0)
+
+
+def test_exception_more_frames_than_the_clip_has():
+    """``data.clip.frames=10**9`` used to run on the whole clip silently."""
+    # the bundled walk: 4 s at 120 fps -> 100 frames at 25 fps; from 1 s on, 75 are left
+    with pytest.raises(DataConfigError, match=r"^data\.clip\.frames: 1000000000 frames requested "
+                                              r"but the clip has 75 frames after start 1 s"):
+        synthesized_sequence(_clip(frames=10**9, start=1.0), "clean", FAST, seed=0)
+    with pytest.raises(DataConfigError, match="has 75 frames"):
+        synthesized_sequence(_clip(frames=76, start=1.0), "clean", FAST, seed=0)
+    seq = synthesized_sequence(_clip(frames=None, start=3.8), "clean", FAST, seed=0,
+                               min_frames=1)
+    assert seq.num_frames == 5  # null = what is left: frames 95..99 (t = 3.8 .. 3.96 s)
+
+
+@pytest.mark.parametrize("seed", [1.5, 1.0, True, "3", None])
+def test_exception_seed(seed):
+    """``seed=1.5`` used to run seed 1 (``int(seed)``)."""
+    with pytest.raises(DataConfigError, match=r"^data\.seed: expected an integer seed"):
+        synthesized_sequence(_clip(), "clean", FAST, seed=seed)
+    with pytest.raises(DataConfigError, match=r"^seed: "):
+        check_seed(seed)
+
+
+def test_feature_numpy_integer_seed():
+    import numpy as np
+
+    assert check_seed(np.int64(7)) == 7 and check_seed(3) == 3
+
+
+def test_seed_in_synthesize():
+    from torchmocap.data import SynthesisError, synthesize
+    from torchmocap.io import bundled_clip_path, load_motion
+
+    clip = load_motion(bundled_clip_path()).slice(0, 2)
+    with pytest.raises(SynthesisError, match=r"^seed: expected an integer"):
+        synthesize(clip, "clean", seed=2.5)
+
+
+def test_feature_guessed_joints_reported(tmp_path):
+    """A clip of no known family is mapped by its joint names; the sequence says so."""
+    sys.path.insert(0, str(Path(__file__).parents[1] / "io"))
+    from synthetic_bvh import write_unseen_family_bvh
+
+    path = write_unseen_family_bvh(tmp_path / "rig.bvh", "mixamo", frames=12, unit=1.0)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        seq = synthesized_sequence(_clip(path=str(path), frames=2), "clean", FAST, seed=0)
+    guessed = seq.meta["clip"]["guessed_joints"]
+    assert len(guessed) == 21 and guessed[0] == "pelvis"
+    msgs = [str(w.message) for w in caught]
+    assert any("mapped onto human31 by their names" in m and "pelvis=mixamorig:Hips" in m
+               for m in msgs), msgs
+    # a known family guesses nothing
+    seq = synthesized_sequence(_clip(frames=2), "clean", FAST, seed=0)
+    assert seq.meta["clip"]["guessed_joints"] == [] and seq.meta["clip"]["family"] == "cmu_max"
