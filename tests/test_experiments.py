@@ -18,6 +18,22 @@ EXPERIMENTS = sorted(p.relative_to(ROOT / "conf" / "experiment").with_suffix("")
                      for p in (ROOT / "conf" / "experiment").rglob("*.yaml"))
 
 
+def _vendored_clip(clip: str, data: Path) -> list[str]:
+    """Overrides reading a clip config's ``../shared/data/...`` files from the trimmed copies
+    in ``data`` (tests/data_files), from their first frame (the copies are short)."""
+    if not clip:
+        return []
+    cfg = yaml.safe_load((ROOT / "conf" / "data" / "clip" / f"{clip}.yaml").read_text())
+    out = []
+    for key in ("path", "asf"):
+        v = cfg.get(key)
+        if v and "shared/data/" in v:
+            p = data / v.split("shared/data/", 1)[1]
+            assert p.is_file(), p
+            out.append(f"data.clip.{key}={p}")
+    return out + ["data.clip.start=0.0"] if out else out
+
+
 def test_experiment_configs_exist():
     assert {"ponsmoll2010/fig8", "ponsmoll2010/fig9a", "ponsmoll2010/fig10",
             "ponsmoll2010/control"} <= set(EXPERIMENTS)
@@ -33,6 +49,7 @@ def test_every_experiment_config_runs_for_three_frames(name, tmp_path, shared_da
     # one seed and one clip; every other choice of the sweep (trackers, data options) runs
     narrow = [f"{k}={str(v).split(',')[0]}" for k, v in params.items()
               if k in ("seed", "data/clip")]
+    narrow += _vendored_clip(str(params.get("data/clip", "")).split(",")[0], shared_data)
     sweep = tmp_path / "sweep"
     env = dict(os.environ, OMP_NUM_THREADS="1")
     trackers = str(params.get("tracker", "p")).split(",")
@@ -41,9 +58,10 @@ def test_every_experiment_config_runs_for_three_frames(name, tmp_path, shared_da
         if k not in ("seed", "data/clip", "tracker", "tracker.num_particles"):
             n_jobs *= len(str(v).split(","))
     for t in trackers:  # a tiny budget: annealing layers or descent steps
-        local = tracker_config(t).inference._target_.endswith("LocalInference")
-        budget = (["tracker.inference.iterations=2"] if local else
-                  ["tracker.num_particles=12", "tracker.inference.layers=2"])
+        kind = tracker_config(t).inference._target_.rsplit(".", 1)[-1]
+        budget = {"LocalInference": ["tracker.inference.iterations=2"],
+                  "SIRInference": ["tracker.num_particles=12"]}.get(
+            kind, ["tracker.num_particles=12", "tracker.inference.layers=2"])
         r = subprocess.run([EXE, "-m", f"+experiment={name}", *narrow, f"tracker={t}",
                             "data.clip.frames=3", *budget,
                             "++data.scenario_overrides.image_size=[80,60]",

@@ -5,12 +5,13 @@ any importable package). :func:`build` instantiates a config tree bottom-up with
 ``hydra.utils.instantiate`` — children first, then their parent with the built children — and
 passes the **runtime dependencies** a constructor asks for by parameter name:
 
-=============  =================================================================================
-``skeleton``   the tracking :class:`~torchmocap.skeleton.Skeleton` (the subject's model)
-``body``       its :class:`~torchmocap.body.CapsuleBody`
-``rig``        the :class:`~torchmocap.cameras.CameraRig` of the sequence's views
-``manifold``   the :class:`~torchmocap.ik.SensorManifold` of the tracking IMUs (None without)
-=============  =================================================================================
+================  ===============================================================================
+``skeleton``      the tracking :class:`~torchmocap.skeleton.Skeleton` (the subject's model)
+``body``          its :class:`~torchmocap.body.CapsuleBody`
+``rig``           the :class:`~torchmocap.cameras.CameraRig` of the sequence's views
+``manifold``      the :class:`~torchmocap.ik.SensorManifold` of the tracking IMUs (None without)
+``depth_camera``  the one-camera rig of the depth points (None without depth)
+================  ===============================================================================
 
 So a user's class enters a tracker through YAML alone::
 
@@ -51,7 +52,7 @@ __all__ = [
 ]
 
 #: Names of the runtime dependencies :func:`build` passes to constructors that accept them.
-DEPENDENCIES = ("skeleton", "body", "rig", "manifold")
+DEPENDENCIES = ("skeleton", "body", "rig", "manifold", "depth_camera")
 
 
 class ComponentError(ValueError):
@@ -63,7 +64,7 @@ class Runtime:
     """The runtime dependencies of components (see the module docstring).
 
     Attributes:
-        skeleton, body, rig, manifold: see :data:`DEPENDENCIES`.
+        skeleton, body, rig, manifold, depth_camera: see :data:`DEPENDENCIES`.
         sensors: ``{sensor: bone}`` of the tracking IMUs.
     """
 
@@ -72,6 +73,7 @@ class Runtime:
     rig: Any = None
     manifold: Any = None
     sensors: dict[str, str] = field(default_factory=dict)
+    depth_camera: Any = None
 
     @classmethod
     def from_sequence(cls, sequence, skeleton=None, dtype: torch.dtype = torch.float32
@@ -98,9 +100,9 @@ class Runtime:
                                                 sequence.imu.tracking.tolist()) if t}
         manifold = SensorManifold(skeleton, sensors) if sensors else None
         rig = None if sequence.rig is None else sequence.rig.to(dtype)
+        depth_camera = None if sequence.depth is None else sequence.depth.camera.to(dtype)
         return cls(skeleton=skeleton, body=CapsuleBody(skeleton).to(dtype), rig=rig,
-                   manifold=manifold,
-                   sensors=sensors)
+                   manifold=manifold, sensors=sensors, depth_camera=depth_camera)
 
 
 def _accepts(fn, name: str) -> tuple[bool, bool]:

@@ -377,3 +377,142 @@ def test_orientation_energy_linear_and_squared():
         orientation_energy(R[None], eye, eye, power=3)
     with pytest.raises(ValueError, match="power"):
         OrientationLikelihood(SensorManifold(human31()), power=0)
+
+
+class TestMaskContract:
+    """``prepare_silhouettes`` reads bool masks, any numeric dtype holding exactly {0, 1}, and
+    uint8 holding exactly {0, 255}; everything else is a ValueError naming ``masks``."""
+
+    @staticmethod
+    def _ref():
+        m = torch.zeros(2, 6, 7, dtype=torch.bool)
+        m[0, 1:4, 2:5] = True
+        m[1, 2:6, 0:3] = True
+        return m
+
+    @pytest.mark.parametrize("form", ["bool", "uint8_01", "uint8_255", "int64_01", "f32_01",
+                                      "f64_01", "f16_01"])
+    def test_feature_accepted_forms_agree(self, form):
+        m = self._ref()
+        x = {"bool": m, "uint8_01": m.to(torch.uint8), "uint8_255": m.to(torch.uint8) * 255,
+             "int64_01": m.long(), "f32_01": m.float(), "f64_01": m.double(),
+             "f16_01": m.half()}[form]
+        ref = prepare_silhouettes(m, 10, dtype=torch.float64)
+        obs = prepare_silhouettes(x, 10, dtype=torch.float64)
+        assert torch.equal(obs.masks, ref.masks) and torch.equal(obs.fg_pixels, ref.fg_pixels)
+        assert torch.equal(obs.blurred, ref.blurred)
+
+    def test_feature_all_background_and_all_foreground(self):
+        for v in (0, 1):
+            for dt in (torch.uint8, torch.float32, torch.int32):
+                obs = prepare_silhouettes(torch.full((1, 3, 3), v, dtype=dt), 4)
+                assert float(obs.masks.sum()) == 9 * v
+        obs = prepare_silhouettes(torch.full((1, 3, 3), 255, dtype=torch.uint8), 4)
+        assert float(obs.masks.sum()) == 9
+
+    @pytest.mark.parametrize("bad, shown", [
+        (1.196, "1.196"), (2.0, "2"), (1.0001, "1.0001"), (0.5, "0.5"), (-1.0, "-1"),
+        (float("nan"), "nan"), (float("inf"), "inf"), (float("-inf"), "-inf"),
+        (255.0, "255"),  # 0/255 is a uint8 convention only
+    ])
+    def test_exception_values(self, bad, shown):
+        m = self._ref().float()
+        m[0, 0, 0] = bad
+        with pytest.raises(ValueError, match=r"masks: expected .*found values \{.*") as e:
+            prepare_silhouettes(m)
+        assert shown in str(e.value)
+
+    @pytest.mark.parametrize("dtype", [torch.uint8, torch.int16, torch.int64])
+    def test_exception_integer_values(self, dtype):
+        m = self._ref().to(dtype)
+        m[0, 0, 0] = 2
+        with pytest.raises(ValueError, match=r"masks: .*found values \{0, 1, 2\}"):
+            prepare_silhouettes(m)
+        if dtype != torch.uint8:  # 255 means foreground only in uint8 masks
+            with pytest.raises(ValueError, match="masks"):
+                prepare_silhouettes(self._ref().to(dtype) * 255)
+        with pytest.raises(ValueError, match=r"masks: .*found values \{0, 1, 255\}"):
+            m = self._ref().to(torch.uint8) * 255
+            m[0, 0, 0] = 1
+            prepare_silhouettes(m)
+
+    def test_exception_complex(self):
+        with pytest.raises(ValueError, match="masks"):
+            prepare_silhouettes(self._ref().to(torch.complex64))
+
+
+# ------------------------------------------------------------------------- gradient checks
+@pytest.fixture(scope="module")
+def tiny_scene():
+    """float64 human31 capsules in a 2-camera 64x48 rig, masks of a nearby pose."""
+    sk = human31().double()
+    body = CapsuleBody(sk).double()
+    rig = make_ring_rig(2, image_size=(64, 48)).double()
+    th = sk.zero_pose(dtype=torch.float64)
+    th[sk.dof_index("l_elbow_flex")] = 0.9
+    th[sk.dof_index("r_hip_flex")] = 0.4
+    masks = capsule_masks(body, rig, th)
+    return sk, body, rig, th, masks
+
+
+def _dofs(sk, names):
+    return [sk.dof_index(n) for n in names]
+
+
+def test_gradcheck_smooth_silhouette_energy(tiny_scene):
+    """V_silh(smooth=True) w.r.t. pose angles (float64, finite differences vs autograd)."""
+    sk, body, rig, th, masks = tiny_scene
+    obs = prepare_silhouettes(masks, 40, blur=1.5, dtype=torch.float64)
+    idx = _dofs(sk, ["l_elbow_flex", "l_shoulder_abd", "r_hip_flex", "spine_flex"])
+    base = th.clone()
+    base[idx] += torch.tensor([-0.3, 0.25, 0.2, 0.1], dtype=torch.float64)
+
+    def V(x):
+        t = base.expand(2, -1).clone()
+        t[:, idx] = x
+        return silhouette_energy(body.endpoints(sk(t)), body.radii, rig, obs, smooth=True)
+
+    x = torch.stack([base[idx], base[idx] + 0.05]).requires_grad_()
+    assert torch.autograd.gradcheck(V, (x,), eps=1e-6, atol=1e-6)
+    (g,) = torch.autograd.grad(V(x).sum(), x)
+    assert float(g.abs().sum()) > 0  # the energy does depend on these angles
+
+
+def test_gradcheck_orientation_energy(tiny_scene):
+    """V_ori (power 1 and 2) w.r.t. pose angles through the model's bone frames."""
+    sk, _, _, th, _ = tiny_scene
+    m = SensorManifold(sk, {"a": "l_elbow", "b": "r_knee", "c": "pelvis"}).double()
+    meas = m.sensor_orientations(th)
+    idx = _dofs(sk, ["l_elbow_flex", "l_shoulder_int", "r_knee_flex", "pelvis_rz"])
+    x = (th[idx] + torch.tensor([0.2, -0.3, 0.25, 0.15], dtype=torch.float64))[None]
+    x = x.expand(2, -1).clone()
+    x[1] += 0.1
+    x.requires_grad_()
+    offsets = m.sensor_to_bone.transpose(-1, -2)
+
+    for power in (1, 2):
+        def V(x, power=power):
+            t = th.expand(2, -1).clone()
+            t[:, idx] = x
+            return orientation_energy(m.bone_orientations(t), offsets, meas, power=power)
+
+        assert torch.autograd.gradcheck(V, (x,), eps=1e-6, atol=1e-7)
+
+
+def test_appearance_energy_is_not_differentiable(tiny_scene):
+    """V_app reads pixel colours by nearest-pixel lookup: piecewise constant in the pose. It
+    carries no gradient (rather than a zero one that would silently stall an optimiser), and a
+    sub-pixel move of the pose leaves it unchanged."""
+    from torchmocap.likelihoods.appearance import appearance_energy, body_surface_pattern
+
+    sk, body, rig, th, masks = tiny_scene
+    C, H, W = masks.shape
+    g = torch.Generator().manual_seed(0)
+    imgs = (torch.rand(C, H, W, 3, generator=g) * 255).to(torch.uint8)
+    pattern = body_surface_pattern(body, 3, 4)
+    x = th[None].clone().requires_grad_()
+    e = appearance_energy(sk(x), body, pattern, rig, imgs)
+    assert torch.isfinite(e).all() and float(e) > 0
+    assert not e.requires_grad and e.grad_fn is None
+    e2 = appearance_energy(sk(th[None] + 1e-9), body, pattern, rig, imgs)
+    assert torch.equal(e, e2)

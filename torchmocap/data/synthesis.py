@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import copy
 import hashlib
+import numbers
 import time
 from dataclasses import dataclass, replace
 from typing import Any
@@ -57,8 +58,8 @@ from torchmocap.data.silhouettes import (
     shadow_points,
 )
 
-__all__ = ["BodySurface", "CameraVisibilityError", "SynthesisError", "body_surface",
-           "render_silhouettes", "subgenerator", "synthesize"]
+__all__ = ["MARKER_PARTS", "BodySurface", "CameraVisibilityError", "SynthesisError",
+           "body_surface", "render_silhouettes", "select_markers", "subgenerator", "synthesize"]
 
 
 class SynthesisError(ValueError):
@@ -89,6 +90,8 @@ class BodySurface:
 
 def subgenerator(seed: int, name: str) -> torch.Generator:
     """A ``torch.Generator`` seeded from ``(seed, name)`` (stable across runs and platforms)."""
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
+        raise SynthesisError(f"seed: expected an integer, got {seed!r}")
     h = hashlib.sha256(f"{int(seed)}:{name}".encode()).digest()
     return torch.Generator().manual_seed(int.from_bytes(h[:8], "little") & ((1 << 63) - 1))
 
@@ -151,6 +154,39 @@ def body_surface(skeleton, theta: Tensor, kind: str = "skinned", chunk: int = 64
         parent = caps.parent_index[face_cap]
         return BodySurface(verts, faces, parent, names)
     raise SynthesisError(f"body: expected 'skinned' or 'capsules', got {kind!r}")
+
+
+#: body parts (skeleton joints) that carry the evaluation markers: the arms (Hauberg & Pedersen
+#: place their motion-capture markers on the arms)
+MARKER_PARTS = ("l_shoulder", "l_elbow", "l_wrist", "r_shoulder", "r_elbow", "r_wrist")
+
+
+def select_markers(surface: BodySurface, parts=MARKER_PARTS, per_part: int = 6
+                   ) -> tuple[Tensor, list[str]]:
+    """Vertex indices ``(M,)`` of ``per_part`` markers on each named body part, spread over the
+    part by farthest-point sampling on the first frame, and the part of each marker."""
+    faces = surface.faces
+    V = surface.vertices.shape[1]
+    vpart = torch.full((V,), -1, dtype=torch.long)
+    vpart[faces.reshape(-1)] = surface.face_part.repeat_interleave(3)
+    v0 = surface.vertices[0].double()
+    idx, names = [], []
+    for p in parts:
+        if p not in surface.part_names:
+            continue
+        cand = (vpart == surface.part_names.index(p)).nonzero()[:, 0]
+        if cand.numel() == 0:
+            continue
+        pts = v0[cand]
+        chosen = [int(torch.argmin((pts - pts.mean(0)).norm(dim=-1)))]
+        d = (pts - pts[chosen[0]]).norm(dim=-1)
+        for _ in range(min(per_part, cand.numel()) - 1):
+            k = int(torch.argmax(d))
+            chosen.append(k)
+            d = torch.minimum(d, (pts - pts[k]).norm(dim=-1))
+        idx += cand[chosen].tolist()
+        names += [p] * len(chosen)
+    return torch.tensor(idx, dtype=torch.long), names
 
 
 def render_silhouettes(surface: BodySurface, rig, chunk_frames: int | None = None) -> Tensor:
@@ -241,6 +277,10 @@ def synthesize(
     if seed is None:
         seed = 0 if generator is None else int(
             torch.randint(0, 2**62, (), generator=generator, dtype=torch.int64))
+    elif isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
+        raise SynthesisError(f"seed: expected an integer, got {seed!r} (int() would silently "
+                             "use another seed)")
+    seed = int(seed)
     if isinstance(clip_or_subject, MotionClip):
         clip = clip_or_subject
         if clip.num_frames < 1:
@@ -296,6 +336,13 @@ def synthesize(
         sk32 = copy.deepcopy(sk).float()  # nn.Module.float() is in place: keep the caller's
         surface = body_surface(sk32, theta.float(), sc.body)
         timings["pose_s"] = time.perf_counter() - t1
+
+    # ---- markers on the observed skin (error measure of Hauberg & Pedersen, eq. 16)
+    if surface is not None:
+        midx, mparts = select_markers(surface)
+        if midx.numel():
+            gt.markers = surface.vertices[:, midx].detach().to(positions.dtype).clone()
+            gt.marker_parts = mparts
 
     # ---- silhouettes and images
     dropped = None

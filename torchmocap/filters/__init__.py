@@ -37,6 +37,7 @@ from torchmocap.filters.inference import (
     InferenceResult,
     LocalInference,
     ShrinkingDiffusion,
+    SIRInference,
     SpreadDiffusion,
 )
 from torchmocap.filters.local import LocalOptimiser, LocalResult, minimise_local
@@ -117,6 +118,7 @@ __all__ = [
     "Resampler",
     "ResidualResampler",
     "RotationGroup",
+    "SIRInference",
     "SIRResult",
     "SIRStep",
     "ShrinkingDiffusion",

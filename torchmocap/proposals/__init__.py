@@ -1,6 +1,7 @@
 """torchmocap.proposals: ``sample(context, num, generator) -> Proposed`` samplers of poses, and
 the sensor-noise models of manifold sampling."""
 
+from torchmocap.proposals.angular import UPPER_BODY, AngularPriorProposal, free_dofs
 from torchmocap.proposals.base import (
     GaussianDiffusionProposal,
     Proposal,
@@ -34,33 +35,50 @@ from torchmocap.proposals.noise import (
     VonMisesFisherNoise,
 )
 from torchmocap.proposals.rejection import RejectionProposal, SensorAngleCriterion
+from torchmocap.proposals.spatial import (
+    InSilhouette,
+    JointCriterion,
+    NearPointCloud,
+    PoseInSilhouette,
+    SpatialPriorProposal,
+    tracked_joints,
+)
 
 __all__ = [
+    "AngularPriorProposal",
     "BOUNDARIES",
     "CovarianceScaledProposal",
     "GaussianDiffusionProposal",
+    "InSilhouette",
+    "JointCriterion",
     "JumpChain",
     "KinematicJumpProposal",
     "KinematicJumps",
     "LimbFlips",
     "ManifoldProposal",
+    "NearPointCloud",
     "NoSensorNoise",
     "PassiveGaussianNoise",
+    "PoseInSilhouette",
     "Proposal",
     "ProposalContext",
     "Proposed",
     "RejectionProposal",
     "SensorAngleCriterion",
     "SensorNoise",
+    "SpatialPriorProposal",
     "TangentGaussianNoise",
+    "UPPER_BODY",
     "VonMisesFisherNoise",
     "bound_particles",
     "chain_votes",
     "context_covariances",
+    "free_dofs",
     "kinematic_jumps",
     "limb_flips",
     "mode_set",
     "parse_chain",
     "select_ancestors",
     "select_chains",
+    "tracked_joints",
 ]

@@ -64,7 +64,9 @@ class RejectionProposal(Proposal):
         base: inner proposal (e.g. :class:`~torchmocap.proposals.base.GaussianDiffusionProposal`).
         criterion: ``(theta (K, D), context) -> (K, S)`` or ``(K,)`` errors in radians (e.g.
             :class:`SensorAngleCriterion`), or a :class:`~torchmocap.ik.SensorManifold` (then
-            :class:`SensorAngleCriterion` of it).
+            :class:`SensorAngleCriterion` of it), or a criterion answering pass/fail with a bool
+            tensor (e.g. :class:`~torchmocap.proposals.spatial.PoseInSilhouette`; a candidate
+            passes when all its entries are True).
         threshold_deg: acceptance threshold per sensor (degrees).
         max_tries: cap on the total number of candidates per call.
         max_rounds: cap on the number of batches per call.
@@ -148,8 +150,12 @@ class RejectionProposal(Proposal):
             err = self.error_fn(cand, context)
             if err.dim() == 1:
                 err = err[:, None]
-            ok_s = err <= self.threshold
-            worst = err.max(-1).values
+            if err.dtype == torch.bool:  # a criterion that answers pass/fail per part
+                ok_s = err
+                worst = (~err).sum(-1).to(cand.dtype)
+            else:
+                ok_s = err <= self.threshold
+                worst = err.max(-1).values
             acc = ok_s.all(-1)
             ps = ok_s.sum(0)
             per_sensor = ps if per_sensor is None else per_sensor + ps
@@ -180,6 +186,7 @@ class RejectionProposal(Proposal):
             out[filled:] = pool[: num - filled]
         stats = {
             "acceptance_rate": accepted / max(tries, 1),
+            "rejections_per_sample": (tries - accepted) / num,
             "tries": tries,
             "accepted": accepted,
             "rounds": rounds,

@@ -1,0 +1,166 @@
+"""Hauberg & Pedersen's proposals: the projected spatial prior, the silhouette- and depth-driven
+importance distributions, the whole-pose rejection sampler; and the point-cloud likelihood."""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchmocap.body import CapsuleBody
+from torchmocap.cameras import make_ring_rig
+from torchmocap.data import Frame
+from torchmocap.likelihoods import PointCloudLikelihood, Poses
+from torchmocap.proposals import (
+    AngularPriorProposal,
+    InSilhouette,
+    NearPointCloud,
+    PoseInSilhouette,
+    ProposalContext,
+    RejectionProposal,
+    SpatialPriorProposal,
+    tracked_joints,
+)
+from torchmocap.proposals.angular import free_dofs
+from torchmocap.skeleton import human31
+
+sys.path.insert(0, str(Path(__file__).parents[1] / "likelihoods"))
+from oracle import capsule_masks  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def scene():
+    sk = human31()
+    body = CapsuleBody(sk).float()
+    rig = make_ring_rig(1).float()
+    th = sk.zero_pose()
+    th[sk.dof_index("l_shoulder_abd")] = 0.9
+    th[sk.dof_index("r_elbow_flex")] = 1.0
+    masks = capsule_masks(body, rig, th)
+    # a point cloud on the camera-facing skin of the pose
+    kin = sk(th[None])
+    pts, normals, _ = body.sample_surface_points(kin, 3000, torch.Generator().manual_seed(0))
+    c = rig.camera_centers()[0]
+    facing = ((c - pts[0]) * normals[0]).sum(-1) > 0
+    return sk, body, rig, th, masks, pts[0][facing]
+
+
+def test_tracked_joints():
+    sk = human31()
+    names = [sk.joint_names[j] for j in tracked_joints(sk, free_dofs(sk, ["l_elbow"]))]
+    assert names == ["l_wrist", "l_hand"]
+    upper = [sk.joint_names[j] for j in tracked_joints(sk, free_dofs(sk, "upper_body"))]
+    assert "l_knee" not in upper and "l_hand" in upper and "head_top" in upper
+    assert len(tracked_joints(sk, free_dofs(sk, "all"))) == 21
+
+
+def test_spatial_prior_moves_only_the_tracked_dofs_and_stays_in_limits(scene):
+    sk, body, rig, th, masks, _ = scene
+    prop = SpatialPriorProposal(sk, position_std=0.04, joints="upper_body")
+    out = prop.sample(ProposalContext(th), 300, torch.Generator().manual_seed(0))
+    x = out.particles
+    assert bool(sk.within_limits(x, tol=1e-5).all())
+    frozen = [d for d in range(31) if d not in prop.free.tolist()]
+    assert torch.equal(x[:, frozen], th[frozen].expand(300, -1))
+    # the hands scatter by about the position std (not the growing angular spread)
+    hand = sk.joint_index("l_hand")
+    spread = (sk(x).positions[:, hand] - sk(th).positions[hand]).norm(dim=-1).median()
+    assert 0.02 < float(spread) < 0.12
+    assert out.log_q is None  # a projected density has no closed form
+
+
+def test_silhouette_driven_joints_land_in_the_foreground(scene):
+    sk, body, rig, th, masks, _ = scene
+    frame = Frame(index=0, time=0.0, silhouettes=masks)
+    crit = InSilhouette(rig)
+    st = crit.prepare(frame)
+    g = torch.Generator().manual_seed(1)
+    blind = SpatialPriorProposal(sk, position_std=0.06, joints="upper_body")
+    driven = SpatialPriorProposal(sk, position_std=0.06, joints="upper_body", criteria=[crit])
+    fractions = []
+    for prop in (blind, driven):
+        out = prop.sample(ProposalContext(th, frame=frame), 300, g)
+        pos = sk(out.particles).positions[:, prop.joint_index]
+        ok = crit(pos.reshape(-1, 3), prop.joint_index.repeat(300), st)
+        fractions.append(float(ok.float().mean()))
+    assert fractions[1] > fractions[0] + 0.1, fractions
+    assert out.stats["failed_joints"] == 0 and out.stats["joint_tries"] > 1
+    # no foreground at all: the criterion is switched off and the frame says so
+    empty = Frame(index=1, time=0.0, silhouettes=torch.zeros_like(masks))
+    out = driven.sample(ProposalContext(th, frame=empty), 50, g)
+    assert out.stats.get("fallback_silhouette") == 1
+    with pytest.raises(ValueError, match="context.frame"):
+        driven.sample(ProposalContext(th), 5, g)
+
+
+def test_depth_criterion_keeps_joints_near_the_cloud(scene):
+    sk, body, rig, th, masks, pts = scene
+    frame = Frame(index=0, time=0.0, silhouettes=masks, depth=pts)
+    near = NearPointCloud(sk)
+    tree = near.prepare(frame)
+    g = torch.Generator().manual_seed(2)
+    driven = SpatialPriorProposal(sk, position_std=0.08, joints="upper_body",
+                                  criteria=[near], max_tries=200)
+    out = driven.sample(ProposalContext(th, frame=frame), 200, g)
+    assert out.stats["failed_joints"] < 0.01 * 200 * driven.joint_index.numel()
+    # before the projection every drawn joint satisfied its radius: the projected ones are
+    # close to the cloud too (the projection moves joints by centimetres)
+    pos = sk(out.particles).positions[:, driven.joint_index]
+    d, _ = tree.query(pos.reshape(-1, 3).double().numpy())
+    r = near.radius[driven.joint_index].repeat(200).numpy()
+    assert float((d < r + 0.05).mean()) > 0.95
+    assert near.prepare(Frame(index=0, time=0.0, depth=torch.zeros(0, 3))) is None
+    with pytest.raises(ValueError, match="radii.l_hand"):
+        NearPointCloud(sk, radii={"l_hand": -1.0})
+
+
+def test_whole_pose_rejection_counts_rejections(scene):
+    sk, body, rig, th, masks, _ = scene
+    frame = Frame(index=0, time=0.0, silhouettes=masks)
+    base = AngularPriorProposal(sk, rotation_std_deg=15.0, joints="upper_body")
+    rej = RejectionProposal(base, PoseInSilhouette(sk, rig, "upper_body"), max_tries=200000)
+    out = rej.sample(ProposalContext(th, frame=frame), 100, torch.Generator().manual_seed(3))
+    assert out.stats["filled"] == 1.0 and out.stats["rejections_per_sample"] > 1
+    crit = PoseInSilhouette(sk, rig, "upper_body")
+    assert bool(crit(out.particles, ProposalContext(th, frame=frame)).all())
+
+
+def test_point_cloud_energy(scene):
+    sk, body, rig, th, masks, pts = scene
+    lik = PointCloudLikelihood(body, rig, sigma=0.02, tau=0.01, max_points=500)
+    obs = lik.prepare(Frame(index=0, time=0.0, depth=pts))
+    assert obs.shape[0] == 500 and lik.evidence(obs) and lik.requires == ("depth",)
+    far = th.clone()
+    far[sk.dof_index("l_shoulder_abd")] = 0.2
+    v = lik.energy(Poses(torch.stack([th, far]), sk), obs)
+    assert float(v[0]) < 1e-3 * float(v[1]) + 1e-6  # the true pose explains every point
+    # closed form: one point 5 cm in front of a capsule's camera-facing surface
+    one = lik.prepare(Frame(index=0, time=0.0, depth=pts[:1] + 0.0))
+    assert float(lik.energy(Poses(th[None], sk), one)[0]) == pytest.approx(0.0, abs=1e-3)
+    # the truncation caps an outlier's cost at tau / 2 sigma^2
+    out = lik.prepare(Frame(index=0, time=0.0, depth=torch.tensor([[5.0, 5.0, 5.0]])))
+    assert float(lik.energy(Poses(th[None], sk), out)[0]) == pytest.approx(
+        0.01 / (2 * 0.02**2), rel=1e-5)
+    empty = lik.prepare(Frame(index=0, time=0.0, depth=torch.zeros(0, 3)))
+    assert not lik.evidence(empty)
+    with pytest.raises(ValueError, match="sigma"):
+        PointCloudLikelihood(body, rig, sigma=0.0)
+
+
+def test_point_cloud_gradcheck(scene):
+    sk, body, rig, th, masks, pts = scene
+    from torchmocap.likelihoods import point_cloud_energy
+
+    sk64, body64 = human31().double(), CapsuleBody(human31().double()).double()
+    x = th.double()[None].clone().requires_grad_(True)
+    P = pts[:20].double() + 0.01
+
+    def f(x):
+        return point_cloud_energy(body64.endpoints(sk64(x)), body64.radii, P,
+                                  rig.camera_centers()[0].double(), 0.03, 1.0)
+
+    assert torch.autograd.gradcheck(f, (x,), eps=1e-6, atol=1e-4)
+    assert math.isfinite(float(f(x.detach())))
