@@ -6,7 +6,9 @@ real recording such as ``data=bodytrack``); the tracker is built from the ``trac
 :func:`torchmocap.assembly.build_tracker` — the command line never reaches into components.
 
 Writes into the Hydra run directory: ``metrics.json`` (last, atomically), ``track.npz``,
-``tracked.bvh``, overlays and ``errors.png``. A failure prints one line on stderr, writes
+``tracked.bvh``, overlay grids (every view, estimate and truth), ``errors.png``, and on request
+an animation of the overlays (``video.enabled``) and an animated skinned body (``glb.enabled``);
+the images, videos and GLB are written atomically too. A failure prints one line on stderr, writes
 ``failure.json`` and exits with status 2; in a multirun the other jobs go on and the command
 exits with status 2 at the end if any job failed. A run directory whose ``metrics.json`` has the
 same fingerprint (config, code, data files) is skipped as up to date.
@@ -70,6 +72,7 @@ def run(cfg: DictConfig, out: Path) -> dict:
     for stale in ("failure.json", "metrics.json"):
         (out / stale).unlink(missing_ok=True)
     _validate_tracker(cfg)  # settings errors before any loading, fitting or synthesis
+    _validate_outputs(cfg)
     seq = load_sequence(cfg, min_frames=2)
     runtime = Runtime.from_sequence(seq)
     try:
@@ -108,6 +111,8 @@ def run(cfg: DictConfig, out: Path) -> dict:
         errors = _errors(seq, sk, track.theta)
         metrics.update(errors.pop("summary"))
         arrays.update({k: v.numpy() for k, v in errors.items()})
+        if seq.ground_truth.markers is not None:
+            metrics["marker_error_mm"] = _marker_error(seq, runtime, track.theta)
         hyp = _hypotheses(seq, sk, track.infos)
         if hyp:
             metrics["hypotheses"] = hyp
@@ -125,7 +130,7 @@ def run(cfg: DictConfig, out: Path) -> dict:
                                                             fps=seq.fps))
     sk.float()
     with torch.no_grad():
-        _write_plots(out, seq, runtime, track.theta, arrays, int(cfg.get("overlays", 3)))
+        _write_plots(out, seq, runtime, track.theta, arrays, cfg)
     write_json_atomic(metrics, out / "metrics.json")
     return metrics
 
@@ -181,6 +186,21 @@ def _errors(seq, sk, theta) -> dict:
     summary["mpjpe_mm"]["per_frame"] = [round(float(v), 3) for v in mp]
     return {"summary": summary, "theta_gt": gt.theta, "orientation_error_deg": ori,
             "mpjpe_mm": mp}
+
+
+def _marker_error(seq, runtime, theta) -> dict:
+    """Eq. 16 of Hauberg & Pedersen: distance (mm) of the skin markers to the estimated
+    capsule skin, frames 1..T-1."""
+    from torchmocap.metrics import marker_skin_distance
+
+    body = runtime.body
+    d = marker_skin_distance(seq.ground_truth.markers[1:],
+                             body.endpoints(runtime.skeleton(theta[1:])), body.radii) * 1000
+    per_part: dict[str, list] = {}
+    for k, p in enumerate(seq.ground_truth.marker_parts):
+        per_part.setdefault(p, []).append(k)
+    return {"mean": float(d.mean()), "per_frame": [round(float(v), 3) for v in d.mean(1)],
+            "per_part": {p: float(d[:, ks].mean()) for p, ks in per_part.items()}}
 
 
 def _hypotheses(seq, sk, infos) -> dict:
@@ -272,8 +292,21 @@ def _diagnostics(infos: list) -> dict:
     out: dict[str, Any] = {}
     tracked = [i for i in infos[1:] if isinstance(i, dict)]
     ess = [i["ess"][-1] for i in tracked if i.get("ess")]
-    if ess:
-        out["ess_final_mean"] = sum(ess) / len(ess)
+    if ess:  # the ESS of the weights each frame ends with (an SIR filter's only one)
+        out["ess_final_mean"] = out["ess_mean"] = sum(ess) / len(ess)
+        out["ess_per_frame"] = [round(float(v), 3) for v in ess]
+    props = [i["proposal"] for i in tracked if isinstance(i.get("proposal"), dict)]
+    keys = sorted({k for p in props for k, v in p.items()
+                   if isinstance(v, (int, float)) and not isinstance(v, bool)})
+    if keys:  # proposal statistics (rejections, per-joint tries, fallbacks): per-frame means
+        out["proposal_mean"] = {k: sum(float(p.get(k, 0.0)) for p in props) / len(props)
+                                for k in keys}
+        fell = {k[len("fallback_"):]: sum(1 for p in props if p.get(k)) for k in keys
+                if k.startswith("fallback_")}
+        if any(fell.values()):
+            print("torchmocap-track: warning: the data-driven proposal fell back to its prior "
+                  "(no usable data) in frames: "
+                  + ", ".join(f"{k} {n}" for k, n in fell.items() if n), file=sys.stderr)
     rates = [i["proposal"]["acceptance_rate"] for i in tracked
              if "acceptance_rate" in i.get("proposal", {})]
     if rates:
@@ -297,16 +330,46 @@ def _diagnostics(infos: list) -> dict:
     return out
 
 
-def _write_plots(out, seq, runtime, theta, arrays, n_overlays):
+def _validate_outputs(cfg) -> None:
+    """The output settings (``overlays``, ``overlay_scale``, ``video.*``, ``glb.*``), checked
+    before the track so that a typo does not fail a long run at its end."""
+    from torchmocap.viz.video import VIDEO_FORMATS
+
+    def number(key, value, none=False):
+        if none and value is None:
+            return
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or \
+                not (math.isfinite(value) and value > 0):
+            raise ValueError(f"{key}: expected a finite number > 0{' or null' if none else ''}, "
+                             f"got {value!r}")
+
+    n = cfg.get("overlays", 3)
+    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+        raise ValueError(f"overlays: expected an integer >= 0, got {n!r}")
+    number("overlay_scale", cfg.get("overlay_scale", 1.0))
+    video = cfg.get("video") or {}
+    if video.get("format", "mp4") not in VIDEO_FORMATS:
+        raise ValueError(f"video.format: expected one of {list(VIDEO_FORMATS)}, got "
+                         f"{video.get('format')!r}")
+    number("video.max_fps", video.get("max_fps"), none=True)
+    number("video.scale", video.get("scale", 1.0))
+    glb = cfg.get("glb") or {}
+    if glb.get("body", "skinned") not in ("skinned", "stick"):
+        raise ValueError(f"glb.body: expected 'skinned' or 'stick', got {glb.get('body')!r}")
+    if glb.get("up", "y") not in ("y", "z"):
+        raise ValueError(f"glb.up: expected 'y' or 'z', got {glb.get('up')!r}")
+
+
+def _write_plots(out, seq, runtime, theta, arrays, cfg):
+    """``errors.png``, the overlay grids, the video and the GLB (each file atomically)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from torchmocap.viz import overlay_on_image
+    from torchmocap.io.atomic import atomic_path
 
-    sk, body = runtime.skeleton, runtime.body
     T = theta.shape[0]
     if "orientation_error_deg" in arrays:
         ori, mp = arrays["orientation_error_deg"], arrays["mpjpe_mm"]
@@ -321,26 +384,65 @@ def _write_plots(out, seq, runtime, theta, arrays, n_overlays):
         ax[1].set_ylabel("MPJPE (mm)")
         ax[1].set_xlabel("time (s)")
         fig.tight_layout()
-        fig.savefig(out / "errors.png", dpi=100)
+        with atomic_path(out / "errors.png") as tmp:
+            fig.savefig(tmp, dpi=100, format="png")
         plt.close(fig)
-    if n_overlays <= 0 or seq.silhouettes is None or runtime.rig is None:
+    _write_overlays(out, seq, runtime, theta, cfg)
+    glb = cfg.get("glb") or {}
+    if glb.get("enabled", False):
+        _write_glb(out / "track.glb", seq, runtime, theta, glb)
+
+
+def _write_overlays(out, seq, runtime, theta, cfg) -> None:
+    """Overlay grids (``overlay_XXXX.png``: every view, the estimate and the truth, a legend) at
+    ``overlays`` evenly spaced frames, or of the last frame when there is no ground truth; with
+    ``video.enabled`` an animation of the grids over the whole track."""
+    import logging
+
+    import numpy as np
+
+    from torchmocap.viz.overlays import track_overlay_frames, write_overlay_grid
+    from torchmocap.viz.video import decimation, write_video
+
+    n = int(cfg.get("overlays", 3))
+    video = cfg.get("video") or {}
+    if runtime.rig is None or (seq.silhouettes is None and seq.images is None):
+        if video.get("enabled", False):
+            logging.getLogger(__name__).warning("video: the sequence has no camera views; "
+                                                "no video written")
         return
-    if seq.ground_truth is None:  # a real recording: every view of the last frame
-        f = seq.frame(T - 1)
-        kin = sk(theta[T - 1])
-        for c in range(runtime.rig.num_cameras):
-            img = f.images[c] if f.images is not None else f.silhouettes[c].float()
-            overlay_on_image(img, runtime.rig, c, kin, out / f"overlay_cam{c + 1}.png",
-                             skeleton=sk, capsules=body, mask=f.silhouettes[c],
-                             title=f"camera {c + 1}: model (capsules) over the image")
-        return
-    frames = sorted({int(round(x)) for x in np.linspace(1, T - 1, n_overlays)})
-    for t in frames:
-        f = seq.frame(t)
-        img = f.images[0] if f.images is not None else f.silhouettes[0].float()
-        overlay_on_image(img, runtime.rig, 0, sk(theta[t]), out / f"overlay_{t:04d}.png",
-                         skeleton=sk, capsules=body, mask=f.silhouettes[0],
-                         title=f"frame {t}: model (capsules) over camera 0")
+    T = int(theta.shape[0])
+    kw = dict(rig=runtime.rig, body=runtime.body, scale=float(cfg.get("overlay_scale", 1.0)))
+    if n > 0:
+        frames = ([T - 1] if seq.ground_truth is None else
+                  sorted({int(round(x)) for x in np.linspace(1, T - 1, n)}))
+        for t, grid in track_overlay_frames(seq, runtime.skeleton, theta, frames, **kw):
+            write_overlay_grid(out / f"overlay_{t:04d}.png", grid)
+    if video.get("enabled", False):
+        fps = float(seq.fps)
+        max_fps = video.get("max_fps")
+        step = decimation(fps, None if max_fps is None else float(max_fps))
+        kw["scale"] = float(video.get("scale", kw["scale"]))
+        grids = (g for _, g in track_overlay_frames(seq, runtime.skeleton, theta,
+                                                     range(0, T, step), **kw))
+        path = write_video(out / "overlays", grids, fps / step, format=str(video.get("format",
+                                                                                     "mp4")))
+        logging.getLogger(__name__).info("video: wrote %s (%d frames at %g fps)", path,
+                                         len(range(0, T, step)), fps / step)
+
+
+def _write_glb(path, seq, runtime, theta, glb) -> None:
+    """``track.glb``: the bundled skinned body (``glb.body: skinned``) or a stick figure
+    (``stick``) following the estimate, keyframes at the sequence's frame times."""
+    from torchmocap.export import write_glb
+
+    mesh = None
+    if glb.get("body", "skinned") == "skinned":
+        from torchmocap.body import SkinnedBody
+
+        mesh = SkinnedBody()
+    write_glb(path, runtime.skeleton, theta, float(seq.fps), body_mesh=mesh,
+              up=str(glb.get("up", "y")))
 
 
 _KNOWN_ERRORS: tuple[type[BaseException], ...] = (ValueError, LookupError, OSError, TypeError)
