@@ -7,6 +7,7 @@ import warnings
 from pathlib import Path
 
 import pytest
+import torch
 
 from torchmocap.data.loaders import DataConfigError, check_seed, synthesized_sequence
 
@@ -84,3 +85,30 @@ def test_feature_guessed_joints_reported(tmp_path):
     # a known family guesses nothing
     seq = synthesized_sequence(_clip(frames=2), "clean", FAST, seed=0)
     assert seq.meta["clip"]["guessed_joints"] == [] and seq.meta["clip"]["family"] == "cmu_max"
+
+
+def test_feature_in_place_holds_the_root_and_keeps_the_rest():
+    """``in_place: true``: the pelvis stays where it was at frame 0 (position and orientation),
+    while every joint keeps its motion relative to the pelvis."""
+    free = synthesized_sequence(_clip(frames=12), "clean", FAST, seed=0)
+    held = synthesized_sequence(_clip(frames=12, in_place=True), "clean", FAST, seed=0)
+    names = list(held.ground_truth.joint_names)
+    pel = names.index("pelvis")
+    p_free, p_held = free.ground_truth.positions, held.ground_truth.positions
+    r_free, r_held = free.ground_truth.rotations, held.ground_truth.rotations
+    # the walk moves its pelvis by tens of centimetres in 12 frames; held, it does not move
+    assert float((p_free[:, pel] - p_free[0, pel]).norm(dim=-1).max()) > 0.1
+    assert float((p_held[:, pel] - p_held[0, pel]).norm(dim=-1).max()) < 1e-5
+    assert float((r_held[:, pel] - r_held[0, pel]).abs().max()) < 1e-5
+    # relative to the pelvis, a hand moves exactly as before
+    hand = names.index("l_hand")
+
+    def rel(p, r):
+        return (r[:, pel].transpose(-1, -2) @ (p[:, hand] - p[:, pel]).unsqueeze(-1)).squeeze(-1)
+
+    torch.testing.assert_close(rel(p_held, r_held), rel(p_free, r_free), atol=1e-4, rtol=0)
+
+
+def test_exception_in_place_must_be_a_bool():
+    with pytest.raises(DataConfigError, match=r"^data\.clip\.in_place: expected true or false"):
+        synthesized_sequence(_clip(in_place="yes"), "clean", FAST, seed=0)

@@ -79,7 +79,8 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
             ``skeleton_map`` (family name or map YAML; null = auto-detected), ``fps`` (resample
             to; null = the scenario's), ``skip_frames`` (leading source frames to drop),
             ``start`` (seconds to skip after resampling), ``frames`` (frames to keep; null =
-            all; more than the clip has after ``start`` is an error).
+            all; more than the clip has after ``start`` is an error), ``in_place`` (hold the
+            root at its first-frame position and orientation: the person stands in place).
         scenario: bundled scenario name or YAML path (see :func:`~torchmocap.data.load_scenario`).
         scenario_overrides: dotted or nested scenario keys to replace, e.g.
             ``{"imu.misalignment_deg": [5, 10], "body": "capsules"}``.
@@ -94,7 +95,8 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
     from torchmocap.data.subject import fit_subject
     from torchmocap.io import load_motion
 
-    allowed = {"name", "path", "asf", "skeleton_map", "fps", "skip_frames", "start", "frames"}
+    allowed = {"name", "path", "asf", "skeleton_map", "fps", "skip_frames", "start", "frames",
+               "in_place"}
     unknown = sorted(set(clip) - allowed)
     if unknown:
         raise DataConfigError(f"data.clip: unknown keys {unknown}; expected {sorted(allowed)}")
@@ -105,6 +107,9 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
         smap = str(Path(str(smap)).expanduser().absolute())
     skip = _int(clip.get("skip_frames") or 0, "data.clip.skip_frames", 0)
     frames = _int(clip.get("frames"), "data.clip.frames", min_frames, allow_none=True)
+    in_place = clip.get("in_place", False)
+    if not isinstance(in_place, bool):
+        raise DataConfigError(f"data.clip.in_place: expected true or false, got {in_place!r}")
     start = clip.get("start")
     start = 0.0 if start is None else _number(start, "data.clip.start", "seconds >= 0", 0, False)
     fps_cfg = clip.get("fps")
@@ -134,10 +139,13 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
                               f"need >= {min_frames}")
     if a > 0 or end < motion.num_frames:
         motion = motion.slice(a, end)
+    if in_place:
+        motion = motion.in_place()
     subject = fit_subject(motion, skeleton_map=smap)
     seq = synthesize(subject, sc, seed=seed)
     seq.meta["clip"] = {"name": clip.get("name"), "path": path, "asf": asf,
                         "skeleton_map": smap, "skip_frames": skip, "start": float(start),
+                        "in_place": in_place,
                         "fps": fps, "frames": seq.num_frames, "family": subject.family,
                         "guessed_joints": subject.info.get("guessed_joints", [])}
     if subject.info.get("guessed_joints"):

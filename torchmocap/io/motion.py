@@ -286,6 +286,17 @@ class MotionClip:
             local_translations={k: mv(v) for k, v in self.local_translations.items()},
         )
 
+    def in_place(self) -> MotionClip:
+        """The clip with its root held at the first frame's position and orientation (every
+        other joint's motion unchanged): a person standing in place, as in sequences where only
+        the upper body is tracked (Hauberg & Pedersen 2011, §5)."""
+        return replace(
+            self,
+            rotations=torch.cat([self.rotations[:1, :1].expand(self.num_frames, 1, 3, 3),
+                                 self.rotations[:, 1:]], 1),
+            root_translation=self.root_translation[:1].expand(self.num_frames, 3).clone(),
+        )
+
     def slice(self, start: int | None = None, stop: int | None = None) -> MotionClip:
         """Frames ``start:stop`` (Python slice semantics, step 1) as a new clip."""
         idx = range(self.num_frames)[slice(start, stop)]
