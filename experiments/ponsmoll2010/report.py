@@ -244,8 +244,47 @@ def fidelity() -> str:
     return "\n".join(lines)
 
 
+LONG_CLIPS = {"boxing_long": "boxing (CMU21 box-1)",
+              "jumping_jack_long": "jumping jacks (CMU21)"}
+LONG_METHODS = ["ls", "p"]
+
+
+def long() -> str:
+    """20 s excerpts: LS vs P — mean error, and the error of the last 5 s against the first 5 s
+    (a local optimiser that loses track does not come back)."""
+    rows = {(c, m): combine(runs_of("long", c, m)) for c in LONG_CLIPS for m in LONG_METHODS}
+    lines = ["# Long excerpts: validation orientation error (deg), outdoor scenario, 500 frames "
+             "(20 s at 25 fps), mean ± std over frames, sensors and tracker seeds (± spread of "
+             "the per-seed means); first and last 5 s separately "
+             "(`+experiment=ponsmoll2010/long`)", "",
+             "| clip | tracker | all frames | first 5 s | last 5 s | s / frame |",
+             "|---|---|---|---|---|---|"]
+    plt = _plt()
+    fig, axes = plt.subplots(1, len(LONG_CLIPS), figsize=(11, 3.4), squeeze=False)
+    for i, (c, label) in enumerate(LONG_CLIPS.items()):
+        for m in LONG_METHODS:
+            r = rows[(c, m)]
+            curves = list(r["ori_per_bone_frame"].values())
+            per_frame = [sum(v) / len(v) for v in zip(*curves)]
+            k = min(125, len(per_frame) // 2)
+            first, last = per_frame[:k], per_frame[-k:]
+            lines.append(f"| {label} | {m.upper()} | {cell(r)} | {sum(first) / k:.1f} | "
+                         f"{sum(last) / k:.1f} | {r['seconds_per_frame']:.2f} |")
+            ax = axes[0, i]
+            ax.plot([t / 25.0 for t in range(len(per_frame))], per_frame, label=m.upper(),
+                    lw=1)
+        axes[0, i].set_title(label, fontsize=9)
+        axes[0, i].set_xlabel("time (s)")
+        axes[0, i].set_ylabel("validation error (deg)")
+        axes[0, i].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(RESULTS / "long.png", dpi=110)
+    plt.close(fig)
+    return "\n".join(lines)
+
+
 FIGURES = {"fig8": fig8, "fig9a": fig9a, "fig10": fig10, "control": control,
-           "fidelity": fidelity}
+           "fidelity": fidelity, "long": long}
 
 
 def main() -> None:

@@ -97,6 +97,9 @@ class TestScenario:
             load_scenario("studio", imu={"noise": "laplace"})
         with pytest.raises(ScenarioError, match="silhouettes.drop_view"):
             load_scenario("studio", silhouettes={"drop_view": 2})
+        for bad in ({"dof": 0}, {"dof": float("inf")}, {"heading_walk_deg": -1.0}):
+            with pytest.raises(ScenarioError, match=f"imu.{next(iter(bad))}"):
+                load_scenario("studio", imu=bad)
         with pytest.raises(ScenarioError, match="imu.misalignment_deg"):
             load_scenario("studio", imu={"misalignment_deg": [10, 5]})
         with pytest.raises(ScenarioError, match="light_direction"):

@@ -100,6 +100,43 @@ class TestImu:
         assert st.kstest(ang, st.maxwell(scale=0.9 * sigma).cdf).pvalue < 1e-3
         assert st.kstest(ang, st.maxwell(scale=1.1 * sigma).cdf).pvalue < 1e-3
 
+    def test_student_t_spread(self):
+        """The angle of t-distributed tangent noise is sigma * |t_3(dof)|-norm: its law is the
+        Maxwell law of a Gaussian rescaled by sqrt(dof / chi2_dof) — a KS test against that
+        law (sampled independently with scipy), and heavier tails than the Gaussian of the same
+        scale (power against the tangent model)."""
+        sigma, dof = 2.0, 3.0
+        d = _imu(_bones(400), noise="student_t", tangent_std_deg=sigma, dof=dof)
+        ang = quaternion_angle(d.clean, d.quaternions).flatten().numpy()
+        rng = np.random.default_rng(0)
+        ref = (math.radians(sigma) * np.linalg.norm(rng.standard_normal((200000, 3)), axis=1)
+               * np.sqrt(dof / rng.chisquare(dof, 200000)))
+        ref = np.minimum(ref, math.pi)
+        assert st.ks_2samp(ang, ref).pvalue > 1e-3
+        assert st.kstest(ang, st.maxwell(scale=math.radians(sigma)).cdf).pvalue < 1e-6
+        # heavy tails: far more draws beyond 4 sigma than the Gaussian's ~0.1 %
+        assert float(np.mean(ang > 4 * math.radians(sigma))) > 0.03
+
+    def test_heading_walk_variance_grows_linearly(self):
+        """Magnetic disturbance: per sensor a random walk of the heading about world z, with
+        variance heading_walk_deg^2 per second."""
+        T, fps, walk = 126, 25.0, 3.0  # 5 s
+        angles = []
+        for s in range(40):
+            d = _imu(_bones(T), fps=fps, heading_walk_deg=walk,
+                     generator=torch.Generator().manual_seed(s))
+            err = quaternion_multiply(d.quaternions, quaternion_conjugate(d.clean))
+            axis = torch.nn.functional.normalize(err[1:, :, 1:], dim=-1)
+            assert bool((axis[..., 2].abs() > 1 - 1e-6).all())  # about world z
+            err = err * torch.where(err[..., :1] < 0, -1.0, 1.0)  # q and -q: the same rotation
+            angles.append(2 * torch.atan2(err[..., 3], err[..., 0]))  # signed, (T, S)
+        a = torch.rad2deg(torch.stack(angles))  # (40, T, S)
+        assert float(a[:, 0].abs().max()) < 1e-9
+        var_5s = float(a[:, -1].var())  # 400 walks: var ~ walk^2 * 5 s = 45 deg^2
+        assert 0.8 * walk**2 * 5 < var_5s < 1.2 * walk**2 * 5
+        var_1s = float(a[:, int(fps)].var())
+        assert 0.75 * walk**2 < var_1s < 1.25 * walk**2
+
     def test_misalignment_exact_angle_on_the_left(self):
         R = _bones(6)
         d = _imu(R, misalignment_deg=7.0)

@@ -114,7 +114,7 @@ def _z_rotation(angle: Tensor) -> Tensor:
 
 
 def _device_noise(shape: tuple[int, ...], noise: str, kappa: float, tangent_std_deg: float,
-                  generator: torch.Generator, dtype: torch.dtype) -> Tensor:
+                  generator: torch.Generator, dtype: torch.dtype, dof: float = 3.0) -> Tensor:
     if noise == "none":
         q = torch.zeros(*shape, 4, dtype=dtype)
         q[..., 0] = 1
@@ -129,7 +129,25 @@ def _device_noise(shape: tuple[int, ...], noise: str, kappa: float, tangent_std_
     if noise == "tangent":
         w = torch.randn(*shape, 3, generator=generator, dtype=torch.float64)
         return axis_angle_to_quaternion(w * math.radians(tangent_std_deg)).to(dtype)
-    raise ValueError(f"noise: expected 'vmf', 'tangent' or 'none', got {noise!r}")
+    if noise == "student_t":  # multivariate t in the tangent space: Gaussian / sqrt(chi2 / dof)
+        w = torch.randn(*shape, 3, generator=generator, dtype=torch.float64)
+        g = _chi2_sample(dof, shape, generator)
+        w = w * torch.sqrt(dof / g)[..., None]
+        # a rotation by more than pi wraps: cap the angle (a t draw that far is a gross outlier)
+        ang = w.norm(dim=-1, keepdim=True) * math.radians(tangent_std_deg)
+        axis = torch.nn.functional.normalize(w, dim=-1)
+        return axis_angle_to_quaternion(axis * ang.clamp(max=math.pi)).to(dtype)
+    raise ValueError(f"noise: expected 'vmf', 'tangent', 'student_t' or 'none', got {noise!r}")
+
+
+def _chi2_sample(dof: float, shape: tuple[int, ...], generator: torch.Generator) -> Tensor:
+    """Chi-square draws with ``dof`` degrees of freedom through ``generator`` (torch's gamma
+    sampler takes none): the inverse CDF of uniform draws (scipy's ``gammaincinv``; synthesis
+    only, not a hot path)."""
+    from scipy.special import gammaincinv
+
+    u = torch.rand(*shape, generator=generator, dtype=torch.float64).clamp(1e-12, 1 - 1e-12)
+    return 2.0 * torch.from_numpy(gammaincinv(dof / 2.0, u.numpy()))
 
 
 def synthesize_imu(
@@ -147,6 +165,8 @@ def synthesize_imu(
     desync_frames: float = 0.0,
     drift_deg_per_min: float = 0.0,
     drop_prob: float = 0.0,
+    dof: float = 3.0,
+    heading_walk_deg: float = 0.0,
 ) -> ImuData:
     """Simulate IMU orientation measurements from ground-truth bone frames.
 
@@ -158,7 +178,8 @@ def synthesize_imu(
         fps: frame rate (for drift in degrees per minute).
         generator: all randomness (offsets, noise, misalignment axis, drops).
         offset, noise, kappa, tangent_std_deg, misalignment_deg, desync_frames,
-        drift_deg_per_min, drop_prob: see :class:`~torchmocap.data.scenario.ImuConfig`.
+        drift_deg_per_min, drop_prob, dof, heading_walk_deg: see
+        :class:`~torchmocap.data.scenario.ImuConfig`.
 
     Returns:
         :class:`ImuData` (float64 quaternions if ``bone_rotations`` is float64, else float32).
@@ -207,7 +228,12 @@ def synthesize_imu(
     drift = (signs * math.radians(drift_deg_per_min) / 60.0).to(dtype)  # rad/s
     drops = torch.rand(T, S, generator=generator, dtype=torch.float64) < drop_prob
     drops[0] = False
-    n = _device_noise((T, S), noise, kappa, tangent_std_deg, generator, dtype)
+    n = _device_noise((T, S), noise, kappa, tangent_std_deg, generator, dtype, dof)
+    # magnetic disturbance of the heading: a per-sensor random walk about world z
+    walk = torch.zeros(T, S, dtype=torch.float64)
+    if heading_walk_deg > 0 and T > 1:
+        steps = torch.randn(T - 1, S, generator=generator, dtype=torch.float64)
+        walk[1:] = torch.cumsum(steps, 0) * math.radians(heading_walk_deg) / math.sqrt(fps)
 
     # desynchronised bone frames: slerp at t + δ (clamped to the clip)
     if desync_frames != 0.0 and T > 1:
@@ -220,7 +246,7 @@ def synthesize_imu(
     q = quaternion_multiply(quaternion_multiply(q_d, q_bs[None]), n)
     q = quaternion_multiply(q_mis.expand(T, S, 4), q)
     time_s = torch.arange(T, dtype=dtype) / fps
-    q = quaternion_multiply(_z_rotation(drift[None] * time_s[:, None]), q)
+    q = quaternion_multiply(_z_rotation(drift[None] * time_s[:, None] + walk.to(dtype)), q)
     q = quaternion_canonical(torch.nn.functional.normalize(q, dim=-1))
 
     # dropped samples: hold the last valid value

@@ -19,6 +19,7 @@ description). The scenario's ``image_size`` overrides the rig's (intrinsics are 
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -129,7 +130,12 @@ class ImuConfig:
         tracking: names of the tracking sensors (the others are validation sensors).
         offset: sensor-to-bone offsets ``R_BS``: ``random`` (uniform, seeded) or ``identity``.
         noise: device noise model: ``vmf`` (on S³, concentration ``kappa``), ``tangent``
-            (isotropic tangent Gaussian, ``tangent_std_deg`` per axis) or ``none``.
+            (isotropic tangent Gaussian, ``tangent_std_deg`` per axis), ``student_t`` (a
+            multivariate Student t in the tangent space, scale ``tangent_std_deg``, ``dof``
+            degrees of freedom: heavy-tailed bursts, and a model no tracker assumes) or ``none``.
+        dof: degrees of freedom of ``student_t`` (> 0; smaller is heavier-tailed).
+        heading_walk_deg: magnetic disturbance: each sensor's heading about world z follows a
+            random walk with this std (degrees) per √s (0 = none).
         kappa: vMF concentration (1000 ≈ 5.6° median angle).
         tangent_std_deg: per-axis std (degrees) of the tangent Gaussian.
         misalignment_deg: angle between the inertial and tracking frames (a number, or a range
@@ -150,6 +156,8 @@ class ImuConfig:
     noise: str = "vmf"
     kappa: float = 1000.0
     tangent_std_deg: float = 3.6
+    dof: float = 3.0
+    heading_walk_deg: float = 0.0
     misalignment_deg: Any = 0.0
     desync_frames: float = 0.0
     drift_deg_per_min: float = 0.0
@@ -278,8 +286,11 @@ class Scenario:
         _check(0 <= im.shadow_darkening <= 1, "images.shadow_darkening", "in [0, 1]",
                im.shadow_darkening)
         u = self.imu
-        _check(u.noise in ("vmf", "tangent", "none"), "imu.noise", "'vmf', 'tangent' or 'none'",
-               u.noise)
+        _check(u.noise in ("vmf", "tangent", "student_t", "none"), "imu.noise",
+               "'vmf', 'tangent', 'student_t' or 'none'", u.noise)
+        _check(_finite(u.dof) and u.dof > 0, "imu.dof", "a finite number > 0", u.dof)
+        _check(_finite(u.heading_walk_deg) and u.heading_walk_deg >= 0, "imu.heading_walk_deg",
+               "a finite number >= 0", u.heading_walk_deg)
         _check(u.offset in ("random", "identity"), "imu.offset", "'random' or 'identity'",
                u.offset)
         _check(u.kappa > 0, "imu.kappa", "> 0", u.kappa)
@@ -306,6 +317,10 @@ class Scenario:
         _check(len(j.confidence) == 2 and 0.1 <= j.confidence[0] <= j.confidence[1] <= 1,
                "joints2d.confidence", "[lo, hi] with 0.1 <= lo <= hi <= 1", j.confidence)
         return self
+
+
+def _finite(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
 def _check(ok: bool, key: str, expected: str, got: Any) -> None:

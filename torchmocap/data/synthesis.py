@@ -420,6 +420,7 @@ def synthesize(
         seq.imu = synthesize_imu(rotations, names, dict(u.sensors), list(u.tracking), fps,
                                  subgenerator(seed, "imu"), offset=u.offset, noise=u.noise,
                                  kappa=u.kappa, tangent_std_deg=u.tangent_std_deg,
+                                 dof=u.dof, heading_walk_deg=u.heading_walk_deg,
                                  misalignment_deg=u.misalignment_deg,
                                  desync_frames=u.desync_frames,
                                  drift_deg_per_min=u.drift_deg_per_min, drop_prob=u.drop_prob)
