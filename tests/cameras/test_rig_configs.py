@@ -24,7 +24,8 @@ def _load(name, overrides=()):
 @pytest.mark.parametrize("name", sorted(p.stem for p in (CONF / "rig").glob("*.yaml")))
 def test_smoke_every_rig_option(name):
     rig = _load(name)
-    assert isinstance(rig, CameraRig) and rig.num_cameras == (1 if name in ("mono1", "stereo1") else 4)
+    single = name in ("mono1", "stereo1")
+    assert isinstance(rig, CameraRig) and rig.num_cameras == (1 if single else 4)
     # a standing 1.8 m person at the origin is seen whole by every camera
     body = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 1.8], [0.4, 0.3, 1.0]], dtype=F64)
     assert bool(rig.project(body)[2].all())

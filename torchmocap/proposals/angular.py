@@ -8,8 +8,8 @@ the same value under the prior this proposal approximates (``prior_scale`` times
 ``prior_scale = 1``: the proposal *is* the prior and the SIR correction factor is 1).
 
 Only the DoFs of the ``joints`` being tracked move (e.g. the upper body of the paper's
-experiments: spine, neck, shoulders, elbows, wrists); every other DoF keeps its ancestor's value and does not
-enter the densities. Shapes: ``P`` particles, ``D`` DoF.
+experiments: spine, neck, shoulders, elbows, wrists); every other DoF keeps its ancestor's value
+and does not enter the densities. Shapes: ``P`` particles, ``D`` DoF.
 """
 
 from __future__ import annotations

@@ -1,0 +1,70 @@
+"""Time per frame of the Hauberg & Pedersen trackers: the data-driven importance distributions
+against the angular prior at equal particles (the paper: about +10 % time).
+
+Run:  python experiments/benchmarks/hauberg_proposals.py [--threads 1] [--particles 150]
+                                                          [--frames 20] [--repeats 3]
+
+Observations: the bundled CMU walk with its root held (the paper's subjects stand in place),
+the ``stereo`` scenario (one viewpoint: left-camera silhouettes and a depth cloud of up to 2000
+points). Trackers: the presets ``hauberg_angular``, ``hauberg_spatial``,
+``hauberg_silhouette`` and ``hauberg_depth`` (upper body, point-cloud likelihood thinned to 400
+points). Each tracker runs the whole clip ``--repeats`` times; the median seconds per frame, the
+ratio to the angular prior and the share of it spent in the proposal (``seconds`` of the
+proposal's statistics) are printed. Run it on an idle machine: timings under load mean nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import statistics
+import time
+
+import torch
+
+PRESETS = ["hauberg_angular", "hauberg_spatial", "hauberg_silhouette", "hauberg_depth"]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--particles", type=int, default=150)
+    ap.add_argument("--frames", type=int, default=20)
+    ap.add_argument("--repeats", type=int, default=3)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+
+    from torchmocap.assembly import Runtime, build_tracker, tracker_config
+    from torchmocap.data.loaders import synthesized_sequence
+
+    seq = synthesized_sequence({"name": "walk", "path": None, "start": 1.0,
+                                "frames": args.frames + 1, "in_place": True}, "stereo", {},
+                               seed=0)
+    rt = Runtime.from_sequence(seq)
+    print(f"# torch {torch.__version__}, {args.threads} threads, {platform.machine()}, "
+          f"{args.particles} particles, {args.frames} frames, stereo scenario "
+          f"({int(seq.depth.counts.float().mean()) if hasattr(seq.depth, 'counts') else '?'} "
+          "points per frame before thinning)")
+    print("| tracker | s/frame (median of runs) | time / angular | proposal s/frame |")
+    print("|---|---:|---:|---:|")
+    base = None
+    for name in PRESETS:
+        cfg = tracker_config(name, [f"tracker.num_particles={args.particles}"])
+        times, props = [], []
+        for r in range(args.repeats + 1):
+            tr = build_tracker(cfg, rt, seed=r)
+            t0 = time.perf_counter()
+            track = tr.run(seq, progress=False)
+            dt = (time.perf_counter() - t0) / args.frames
+            if r == 0:
+                continue  # warm-up
+            times.append(dt)
+            props.append(sum(float(i.get("proposal", {}).get("seconds", 0.0))
+                             for i in track.infos[1:]) / args.frames)
+        t = statistics.median(times)
+        base = t if base is None else base
+        print(f"| {name} | {t:.3f} | x{t / base:.2f} | {statistics.median(props):.3f} |")
+
+
+if __name__ == "__main__":
+    main()
