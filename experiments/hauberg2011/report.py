@@ -156,6 +156,9 @@ def plot(sweep: str, spec: dict, table: dict, path: Path) -> None:
                 sd = [table[(c, t, n)][key][1] for n in ns]
                 ax.errorbar(ns, m, yerr=sd, marker="o", capsize=3, label=name)
             ax.set_xscale("log")
+            ax.minorticks_off()
+            ax.set_xticks(spec["particles"])
+            ax.set_xticklabels([str(n) for n in spec["particles"]])
             ax.set_xlabel("particles")
             ax.set_ylabel(label)
             ax.set_title(CLIPS.get(c, c), fontsize=9)
