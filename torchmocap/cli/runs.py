@@ -113,9 +113,10 @@ def _file_hashes(node) -> dict[str, str]:
     return out
 
 
-def config_fingerprint(cfg, exclude: tuple[str, ...] = ("progress",)) -> str:
+def config_fingerprint(cfg, exclude: tuple[str, ...] = ("progress", "threads")) -> str:
     """Fingerprint of a run: resolved config (minus ``exclude`` keys and ``hydra``), the code,
-    and the content of the data files the config names."""
+    and the content of the data files the config names. ``threads`` is left out: how many
+    cores a run used says nothing about what it computed."""
     from omegaconf import OmegaConf
 
     c = OmegaConf.to_container(cfg, resolve=True)

@@ -55,12 +55,12 @@ def _sequence_fingerprint(seq) -> str:
 
 def run(cfg: DictConfig, out: Path) -> dict:
     """Run the configured job; returns the metrics written to ``out/metrics.json``."""
-    import numpy as np
-    import torch
-
     from torchmocap.assembly import Runtime, build_tracker
-    from torchmocap.io import MotionClip, write_bvh
 
+    if cfg.get("batch_seeds"):  # several seeds in one process: one run dir per seed
+        from torchmocap.cli.batch import run_batch
+
+        return run_batch(cfg, out)
     fingerprint = config_fingerprint(cfg)
     done = read_json(out / "metrics.json")
     if isinstance(done, dict) and done.get("fingerprint") == fingerprint and \
@@ -71,6 +71,7 @@ def run(cfg: DictConfig, out: Path) -> dict:
     # a rerun in place: the old records must not outlive this run's config
     for stale in ("failure.json", "metrics.json"):
         (out / stale).unlink(missing_ok=True)
+    governor = thread_policy(cfg)
     _validate_tracker(cfg)  # settings errors before any loading, fitting or synthesis
     _validate_outputs(cfg)
     seq = load_sequence(cfg, min_frames=2)
@@ -91,7 +92,34 @@ def run(cfg: DictConfig, out: Path) -> dict:
         ckpt = str(ckpt)
     track = tracker.run(seq, progress=bool(cfg.get("progress", True)), checkpoint=ckpt,
                         checkpoint_every=int(cfg.get("checkpoint_every", 10)),
-                        fingerprint=f"{fingerprint}-{_sequence_fingerprint(seq)}")
+                        fingerprint=f"{fingerprint}-{_sequence_fingerprint(seq)}",
+                        callbacks=[governor])
+    return finish(cfg, out, seq, runtime, tracker, track, fingerprint,
+                  {"threads": governor.summary()})
+
+
+def thread_policy(cfg):
+    """Set torch's thread count by the ``threads`` setting (:mod:`torchmocap.threads`: ``auto``
+    stays off cores that other processes or parallel jobs of the sweep use); returns the
+    governor that re-checks between frames."""
+    from torchmocap.threads import ThreadGovernor
+
+    launcher = None
+    if _multirun():
+        from hydra.core.hydra_config import HydraConfig
+
+        launcher = HydraConfig.get().launcher
+    return ThreadGovernor.start(cfg.get("threads", "auto"), launcher)
+
+
+def finish(cfg, out: Path, seq, runtime, tracker, track, fingerprint: str,
+           extra: dict | None = None) -> dict:
+    """Metrics and output files of a finished track (``extra`` joins the metrics)."""
+    import numpy as np
+    import torch
+
+    from torchmocap.io import MotionClip, write_bvh
+
     sk = runtime.skeleton
     metrics: dict[str, Any] = {
         "tracker": tracker.name,
@@ -105,6 +133,7 @@ def run(cfg: DictConfig, out: Path) -> dict:
         "clip": seq.meta.get("clip", {}),
         "fingerprint": fingerprint,
         **_diagnostics(track.infos),
+        **(extra or {}),
     }
     arrays = {"theta": track.theta.numpy(), "dof_names": np.array(sk.dof_names)}
     if seq.ground_truth is not None:

@@ -349,13 +349,14 @@ def bhattacharyya_reweight(means: torch.Tensor, covs: torch.Tensor, log_weights:
     K, K0 = means.shape[0], prior_means.shape[0]
     dist = bhattacharyya_distance(means[:, None].double(), covs[:, None].double(),
                                   prior_means[None].double(), prior_covs[None].double()).cpu()
-    assign = torch.full((K,), -1, dtype=torch.long)
+    # the greedy assignment below is a Python loop over K x K0 entries: on the CPU
+    assign = torch.full((K,), -1, dtype=torch.long, device=dist.device)
     if not discard:
         assign = dist.argmin(-1)
     else:
-        todo = torch.ones(K, dtype=torch.bool)
+        todo = torch.ones(K, dtype=torch.bool, device=dist.device)
         while bool(todo.any()):
-            avail = torch.ones(K0, dtype=torch.bool)
+            avail = torch.ones(K0, dtype=torch.bool, device=dist.device)
             d = torch.where(todo[:, None] & avail[None], dist, torch.full_like(dist, math.inf))
             for flat in torch.argsort(d.flatten()).tolist():
                 j, i = divmod(flat, K0)

@@ -156,7 +156,23 @@ class Tracker(nn.Module):
         if body_fit is not None and not callable(body_fit):
             raise TypeError(f"body_fit: expected a callable, got {type(body_fit).__name__}")
         self.body_fit = body_fit
-        self.dtype = skeleton.offsets.dtype
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """The tracking dtype: the skeleton's (follows ``tracker.to(...)``, ``.double()``)."""
+        return self.skeleton.offsets.dtype
+
+    @property
+    def device(self) -> torch.device:
+        """Where the tracker computes: the skeleton's device (``tracker.to("cuda")``)."""
+        return self.skeleton.offsets.device
+
+    def _on_device(self, frame):
+        """``frame`` with its tensors on the tracker's device (a no-op when they are)."""
+        dev = self.device
+        moved = {f.name: v.to(dev) for f in dataclasses.fields(frame)
+                 if isinstance(v := getattr(frame, f.name), torch.Tensor) and v.device != dev}
+        return dataclasses.replace(frame, **moved) if moved else frame
 
     # ------------------------------------------------------------------ observations
     @property
@@ -222,8 +238,15 @@ class Tracker(nn.Module):
         return ProposalContext(previous=previous, sensors=self._sensors(frame),
                                sensor_valid=frame.imu_valid, frame=frame)
 
-    def _infer(self, context: ProposalContext, frame, generator: torch.Generator):
-        energy = FrameEnergy(self.likelihood, self.likelihood.prepare(frame), self.skeleton)
+    def frame_energy(self, frame) -> FrameEnergy:
+        """The likelihood bound to one frame's observations: ``V(theta (P, D)) -> (P,)``
+        (the frame as the tracker may see it, on the tracker's device)."""
+        return FrameEnergy(self.likelihood, self.likelihood.prepare(frame), self.skeleton)
+
+    def _infer(self, context: ProposalContext, frame, generator: torch.Generator,
+               energy: FrameEnergy | None = None):
+        if energy is None:
+            energy = self.frame_energy(frame)
         res = self.inference(energy, self.proposal, self.estimator, context,
                              self.num_particles, generator)
         est = res.estimate.detach().to(self.dtype)
@@ -238,11 +261,12 @@ class Tracker(nn.Module):
         return est, res, terms
 
     # ------------------------------------------------------------------ state
-    def init(self, theta0: torch.Tensor, frame0=None) -> TrackState:
+    def init(self, theta0: torch.Tensor, frame0=None, seed: int | None = None) -> TrackState:
         """Start from a known first pose ``(D,)`` — or candidate poses ``(K, D)`` when
         ``refine_first_frame`` — and calibrate the tracking sensors on frame 0 (eq. 8).
 
-        ``frame0`` is the first frame as the tracker may see it (:meth:`observe`)."""
+        ``frame0`` is the first frame as the tracker may see it (:meth:`observe`); ``seed``
+        seeds this track's generator (default: the tracker's ``seed``)."""
         D = self.skeleton.num_dofs
         if not isinstance(theta0, torch.Tensor) or theta0.shape[-1:] != (D,) \
                 or theta0.dim() not in (1, 2) or (theta0.dim() == 2
@@ -253,8 +277,11 @@ class Tracker(nn.Module):
                              f"got {shape}")
         if not bool(torch.isfinite(theta0).all()):
             raise ValueError("theta0: expected finite values, found NaN or inf")
-        theta0 = theta0.to(self.dtype)
-        g = torch.Generator(device=theta0.device).manual_seed(self.seed)
+        theta0 = theta0.to(device=self.device, dtype=self.dtype)
+        if frame0 is not None:
+            frame0 = self._on_device(frame0)
+        g = torch.Generator(device=theta0.device).manual_seed(self.seed if seed is None
+                                                               else int(seed))
         info: dict[str, Any] = {"frame": 0, "initial": True}
         particles = log_w = carry = None
         if self.refine_first_frame:
@@ -275,10 +302,14 @@ class Tracker(nn.Module):
                           log_weights=log_w, carry=carry)
 
     # ------------------------------------------------------------------ one frame
-    def step(self, state: TrackState, frame) -> tuple[TrackState, torch.Tensor, dict]:
+    def step(self, state: TrackState, frame, energy: FrameEnergy | None = None
+             ) -> tuple[TrackState, torch.Tensor, dict]:
         """Track one frame (as the tracker may see it, :meth:`observe`): returns the new
-        state, the estimate ``(D,)`` and the frame's diagnostics."""
+        state, the estimate ``(D,)`` and the frame's diagnostics. ``energy``: the frame's
+        :meth:`frame_energy` when the caller built it already (batched tracking shares one
+        among the tracks of a batch, :mod:`torchmocap.filters.batched`)."""
         self._check_frame(frame)
+        frame = self._on_device(frame)
         g = torch.Generator(device=state.history.device).manual_seed(self.seed)
         g.set_state(state.generator_state)
         t0 = time.perf_counter()
@@ -287,7 +318,7 @@ class Tracker(nn.Module):
         # the previous frame's particle set and whatever the inference carries between frames
         context.extras.update(particles=state.particles, log_weights=state.log_weights,
                               carry=state.carry, last_estimate=state.history[-1])
-        est, res, terms = self._infer(context, frame, g)
+        est, res, terms = self._infer(context, frame, g, energy)
         info: dict[str, Any] = {"frame": state.frame + 1, "seconds": time.perf_counter() - t0,
                                 "energy": terms, **res.info}
         new = TrackState(
@@ -305,7 +336,8 @@ class Tracker(nn.Module):
     # ------------------------------------------------------------------ whole sequences
     def run(self, sequence, theta0: torch.Tensor | None = None, progress: bool = True,
             checkpoint: str | None = None, checkpoint_every: int = 10,
-            stop_after: int | None = None, fingerprint: str | None = None) -> Track:
+            stop_after: int | None = None, fingerprint: str | None = None,
+            callbacks=()) -> Track:
         """Track every frame of a :class:`~torchmocap.data.Sequence`.
 
         Args:
@@ -317,6 +349,8 @@ class Tracker(nn.Module):
             stop_after: stop after this many frames (to simulate an interruption).
             fingerprint: identity of the run (settings + data); stored in the checkpoint and
                 compared on resume (:class:`CheckpointError` on a mismatch).
+            callbacks: callables ``(state, info)`` run after every frame (e.g. a
+                :class:`~torchmocap.threads.ThreadGovernor`).
         """
         from tqdm import tqdm
 
@@ -338,6 +372,8 @@ class Tracker(nn.Module):
         for t in bar:
             state, _, info = self.step(state, self.observe(sequence.frame(t), tracking))
             bar.set_postfix(s=f"{info['seconds']:.2f}")
+            for cb in callbacks:
+                cb(state, info)
             done += 1
             if checkpoint is not None and (t % checkpoint_every == 0 or t == T - 1):
                 self.save_checkpoint(state, checkpoint, fingerprint)

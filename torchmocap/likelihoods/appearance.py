@@ -64,7 +64,7 @@ def _per_bone(pattern: dict, num_bones: int) -> tuple[torch.Tensor, torch.Tensor
     n = bone.shape[0]
     k = n // max(num_bones, 1)
     if k * num_bones != n or not torch.equal(
-            bone.cpu(), torch.arange(num_bones).repeat_interleave(k)):
+            bone, torch.arange(num_bones, device=bone.device).repeat_interleave(k)):
         raise ValueError(f"pattern: expected a bone-major layout with the same number of points "
                          f"on each of the {num_bones} capsules (see body_surface_pattern)")
     return pattern["t"].reshape(num_bones, k), pattern["radial"].reshape(num_bones, k, 3)
@@ -135,7 +135,8 @@ def appearance_energy(kin, body, pattern: dict, rig, images,
     base = (torch.arange(C, device=u.device, dtype=it) * (H * W))[:, None]
     # pixel x covers [x - 0.5, x + 0.5): the index is floor(u + 0.5)
     x = (u + 0.5).clamp_(0, W - 1).floor_().add_(base)
-    idx = torch.addcmul(x, (v + 0.5).clamp_(0, H - 1).floor_(), torch.full((), W, dtype=it))
+    idx = torch.addcmul(x, (v + 0.5).clamp_(0, H - 1).floor_(),
+                        torch.full((), W, dtype=it, device=u.device))
     idx = torch.where(ok, idx.long(), C * H * W)  # unseen -> the 0 pixel
     cols = obs.planes.index_select(1, idx.reshape(-1)).reshape(3, C, -1)  # (3, C, M)
     cnt = ok.sum(0).to(dtype)  # (M,)

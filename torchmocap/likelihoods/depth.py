@@ -84,7 +84,8 @@ class PointCloudLikelihood(Likelihood):
             raise ValueError(f"frame.depth: expected points (K, 3), got {tuple(pts.shape)}")
         pts = pts[torch.isfinite(pts).all(-1)]
         if self.max_points and pts.shape[0] > self.max_points:
-            idx = torch.linspace(0, pts.shape[0] - 1, self.max_points).round().long()
+            idx = torch.linspace(0, pts.shape[0] - 1, self.max_points,
+                                 device=pts.device).round().long()
             pts = pts[idx]
         return pts.to(self.body.radii.dtype)
 

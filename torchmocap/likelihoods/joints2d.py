@@ -240,7 +240,7 @@ class Joints2DLikelihood(Likelihood):
         if self.skeleton is not None and J != self.skeleton.num_joints:
             raise ValueError(f"joints2d: {J} joints per camera, the skeleton has "
                              f"{self.skeleton.num_joints} (rows must follow its joint order)")
-        idx = self._joints if self._joints is not None else torch.arange(J)
+        idx = self._joints if self._joints is not None else torch.arange(J, device=j2d.device)
         if int(idx.max()) >= J:
             raise ValueError(f"joints2d: {J} joints per camera, a used joint has index "
                              f"{int(idx.max())}")

@@ -99,9 +99,11 @@ def prepare_silhouettes(masks: torch.Tensor, num_samples: int = 150, blur: float
                                  f"found values {{{shown}{more}}} ({masks.dtype}){hint}")
         m = (masks != 0).to(dtype)
     C, H, W = m.shape
-    valid = torch.ones(C, dtype=torch.bool) if view_valid is None else view_valid.bool().cpu()
-    pix = torch.zeros(C, num_samples, 2, dtype=dtype)
-    pv = torch.zeros(C, num_samples, dtype=torch.bool)
+    dev = masks.device
+    valid = torch.ones(C, dtype=torch.bool, device=dev) if view_valid is None \
+        else view_valid.bool().to(dev)
+    pix = torch.zeros(C, num_samples, 2, dtype=dtype, device=dev)
+    pv = torch.zeros(C, num_samples, dtype=torch.bool, device=dev)
     for c in range(C):  # per view, once per frame (not per particle)
         ys, xs = torch.nonzero(m[c] > 0, as_tuple=True)
         n = xs.numel()
@@ -109,20 +111,19 @@ def prepare_silhouettes(masks: torch.Tensor, num_samples: int = 150, blur: float
             valid[c] = False
             continue
         k = min(n, num_samples)
-        idx = torch.linspace(0, n - 1, k).round().long()
+        idx = torch.linspace(0, n - 1, k, device=dev).round().long()
         pix[c, :k, 0] = xs[idx].to(dtype)  # pixel centres sit at integer coordinates
         pix[c, :k, 1] = ys[idx].to(dtype)
         pv[c, :k] = True
     if blur > 0:
         r = max(1, int(round(3 * blur)))
-        x = torch.arange(-r, r + 1, dtype=dtype)
+        x = torch.arange(-r, r + 1, dtype=dtype, device=dev)
         g = torch.exp(-0.5 * (x / blur) ** 2)
         g = g / g.sum()
         b = F.conv2d(m[:, None], g.view(1, 1, 1, -1), padding=(0, r))
         b = F.conv2d(b, g.view(1, 1, -1, 1), padding=(r, 0))
     else:
         b = m[:, None]
-    dev = masks.device
     return SilhouetteObservation(m.to(dev), F.pad(m, (1, 1, 1, 1)).to(dev), b.to(dev),
                                  pix.to(dev), pv.to(dev), valid.to(dev))
 

@@ -468,20 +468,23 @@ class KinematicJumpProposal(Proposal):
                     break
                 per_start = max(1.0, have / max(stats["starts"], 1))
         allx = torch.cat(leaves) if leaves else modes[:0]
-        allc = torch.cat(comps) if comps else torch.zeros(0, dtype=torch.long)
-        allj = torch.cat(jumps) if jumps else torch.zeros(0, dtype=torch.bool)
+        allc = torch.cat(comps) if comps else torch.zeros(0, dtype=torch.long,
+                                                          device=modes.device)
+        allj = torch.cat(jumps) if jumps else torch.zeros(0, dtype=torch.bool,
+                                                          device=modes.device)
         n = allx.shape[0]
         if n == 0:  # nothing kept (every leaf pruned): the starts themselves
             allx, allc, n = modes, torch.arange(K, device=modes.device), K
             allj = torch.zeros(K, dtype=torch.bool, device=modes.device)
         if n >= num:
             if self.base is None:
-                idx = torch.randperm(n, generator=generator)[:num].sort().values
+                idx = torch.randperm(n, generator=generator,
+                                     device=modes.device)[:num].sort().values
             else:  # base samples come in tree order: keep whole trees, the first ones
-                idx = torch.arange(num)
+                idx = torch.arange(num, device=modes.device)
             unique = num
         else:
-            idx = torch.arange(num) % n
+            idx = torch.arange(num, device=modes.device) % n
             unique = n
         idx = idx.to(allx.device)
         stats["pruned"] = stats["leaves"] - stats["kept"]

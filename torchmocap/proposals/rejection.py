@@ -191,7 +191,7 @@ class RejectionProposal(Proposal):
             "accepted": accepted,
             "rounds": rounds,
             "filled": filled / num,
-            "per_sensor_acceptance": (per_sensor.double() / max(tries, 1)).cpu()
+            "per_sensor_acceptance": per_sensor.double() / max(tries, 1)
             if per_sensor is not None else None,
             "seconds": time.perf_counter() - t0,
             "stopped": stopped,

@@ -92,11 +92,11 @@ class InSilhouette(JointCriterion):
         masks = getattr(frame, "silhouettes", None)
         if masks is None:
             return None
-        valid = torch.ones(masks.shape[0], dtype=torch.bool)
+        valid = torch.ones(masks.shape[0], dtype=torch.bool, device=masks.device)
         if getattr(frame, "view_dropped", None) is not None:
-            valid = ~frame.view_dropped.bool().cpu()
+            valid = ~frame.view_dropped.bool().to(masks.device)
         fg = masks.bool()
-        valid = valid & fg.flatten(1).any(1).cpu()
+        valid = valid & fg.flatten(1).any(1)
         if not bool(valid.any()):
             return None
         return fg, valid
@@ -148,20 +148,36 @@ class NearPointCloud(JointCriterion):
                                     for n in skeleton.joint_names])
 
     def prepare(self, frame):
-        from scipy.spatial import cKDTree
-
         pts = getattr(frame, "depth", None)
         if pts is None:
             return None
         pts = pts[torch.isfinite(pts).all(-1)]
         if pts.shape[0] == 0:
             return None
-        return cKDTree(pts.detach().cpu().double().numpy())
+        if pts.device.type != "cpu":  # no round trip to the host: brute force on the device
+            return pts.detach()
+        from scipy.spatial import cKDTree
+
+        return cKDTree(pts.detach().double().numpy())
 
     def __call__(self, points, joints, state):
+        radius = self.radius.to(points)[joints]
+        if isinstance(state, torch.Tensor):
+            return nearest_distance(points, state.to(points)) < radius
         d, _ = state.query(points.detach().cpu().double().numpy(), k=1)
         d = torch.as_tensor(d, dtype=points.dtype, device=points.device)
-        return d < self.radius.to(points)[joints]
+        return d < radius
+
+
+def nearest_distance(points: torch.Tensor, cloud: torch.Tensor, chunk: int = 4096
+                     ) -> torch.Tensor:
+    """Distance ``(N,)`` of each of ``points (N, 3)`` to its nearest neighbour in
+    ``cloud (K, 3)``, by brute force in chunks of ``chunk`` cloud points (what
+    :class:`NearPointCloud` uses off the CPU, where a k-d tree would need a copy to the host)."""
+    best = torch.full(points.shape[:1], torch.inf, dtype=points.dtype, device=points.device)
+    for s in range(0, cloud.shape[0], chunk):
+        best = torch.minimum(best, torch.cdist(points, cloud[s:s + chunk]).amin(1))
+    return best
 
 
 class SpatialPriorProposal(Proposal):
@@ -254,7 +270,7 @@ class SpatialPriorProposal(Proposal):
                     stats[f"fallback_{c.name}"] = 1  # no usable data: this criterion is off
                 else:
                     active.append((c, st))
-        tries = torch.ones(P, L, dtype=torch.long)
+        tries = torch.ones(P, L, dtype=torch.long, device=mu.device)
         if active:
             jidx = self.joint_index.to(mu.device).expand(P, L)
 
@@ -272,7 +288,7 @@ class SpatialPriorProposal(Proposal):
                 cand = mu[bad] + torch.randn(n, 3, generator=generator, dtype=mu.dtype,
                                              device=mu.device) * std.expand(P, L, 1)[bad]
                 x[bad] = cand
-                tries[bad.cpu()] += 1
+                tries[bad] += 1
                 good = ok(cand, jidx[bad])
                 idx = bad.nonzero()
                 bad[idx[good, 0], idx[good, 1]] = False
