@@ -252,7 +252,14 @@ LONG_METHODS = ["ls", "p"]
 def long() -> str:
     """20 s excerpts: LS vs P — mean error, and the error of the last 5 s against the first 5 s
     (a local optimiser that loses track does not come back)."""
-    rows = {(c, m): combine(runs_of("long", c, m)) for c in LONG_CLIPS for m in LONG_METHODS}
+    found = {(c, m): [r for r in (load("long", c, m, f"seed{s}") for s in SEEDS) if r]
+             for c in LONG_CLIPS for m in LONG_METHODS}
+    clips = {c: label for c, label in LONG_CLIPS.items()
+             if all(found[(c, m)] for m in LONG_METHODS)}
+    if not clips:
+        raise SystemExit("long: no clip has runs of every tracker; run "
+                         "`torchmocap-track -m +experiment=ponsmoll2010/long` first")
+    rows = {(c, m): combine(found[(c, m)]) for c in clips for m in LONG_METHODS}
     lines = ["# Long excerpts: validation orientation error (deg), outdoor scenario, 500 frames "
              "(20 s at 25 fps), mean ± std over frames, sensors and tracker seeds (± spread of "
              "the per-seed means); first and last 5 s separately "
@@ -260,15 +267,16 @@ def long() -> str:
              "| clip | tracker | all frames | first 5 s | last 5 s | s / frame |",
              "|---|---|---|---|---|---|"]
     plt = _plt()
-    fig, axes = plt.subplots(1, len(LONG_CLIPS), figsize=(11, 3.4), squeeze=False)
-    for i, (c, label) in enumerate(LONG_CLIPS.items()):
+    fig, axes = plt.subplots(1, len(clips), figsize=(5.5 * len(clips), 3.4), squeeze=False)
+    for i, (c, label) in enumerate(clips.items()):
         for m in LONG_METHODS:
             r = rows[(c, m)]
             curves = list(r["ori_per_bone_frame"].values())
             per_frame = [sum(v) / len(v) for v in zip(*curves)]
             k = min(125, len(per_frame) // 2)
             first, last = per_frame[:k], per_frame[-k:]
-            lines.append(f"| {label} | {m.upper()} | {cell(r)} | {sum(first) / k:.1f} | "
+            lines.append(f"| {label} | {m.upper()} ({r['seeds']} seeds) | {cell(r)} | "
+                         f"{sum(first) / k:.1f} | "
                          f"{sum(last) / k:.1f} | {r['seconds_per_frame']:.2f} |")
             ax = axes[0, i]
             ax.plot([t / 25.0 for t in range(len(per_frame))], per_frame, label=m.upper(),
