@@ -3,7 +3,8 @@
 The interface (:class:`Likelihood`, :class:`Poses`, :class:`WeightedSum`, :class:`FrameEnergy`)
 is in :mod:`torchmocap.likelihoods.base`; terms: multi-view silhouette (hard/smooth, Pons-Moll
 eq. 17 V_silh), appearance (colour consistency, V_app), sensor orientation (the S of GS/LS);
-point cloud (Hauberg & Pedersen eq. 15).
+learned terms (:mod:`~torchmocap.likelihoods.learned`: features at the projected body, a CNN on
+soft renderings), trained by ``torchmocap-train``.
 """
 
 from torchmocap.likelihoods.appearance import (
@@ -29,6 +30,13 @@ from torchmocap.likelihoods.joints2d import (
     joints2d_energy,
     robust_cost,
 )
+from torchmocap.likelihoods.learned import (
+    ArchitectureMismatchError,
+    LearnedLikelihood,
+    WeightsError,
+)
+from torchmocap.likelihoods.learned_features import LearnedFeatureLikelihood
+from torchmocap.likelihoods.learned_render import LearnedRenderLikelihood, soft_render_capsules
 from torchmocap.likelihoods.limits import JointLimitLikelihood, limit_excess
 from torchmocap.likelihoods.orientation import OrientationLikelihood, orientation_energy
 from torchmocap.likelihoods.silhouette import (
@@ -43,12 +51,16 @@ from torchmocap.likelihoods.silhouette import (
 
 __all__ = [
     "AppearanceLikelihood",
+    "ArchitectureMismatchError",
     "ColourObservation",
     "EmptyEvidenceError",
     "FrameEnergy",
     "Joints2DLikelihood",
     "JointLimitLikelihood",
     "Joints2DObservation",
+    "LearnedFeatureLikelihood",
+    "LearnedLikelihood",
+    "LearnedRenderLikelihood",
     "Likelihood",
     "OrientationLikelihood",
     "PointCloudLikelihood",
@@ -57,6 +69,7 @@ __all__ = [
     "SilhouetteLikelihood",
     "SilhouetteObservation",
     "WeightedSum",
+    "WeightsError",
     "appearance_energy",
     "body_surface_pattern",
     "check_energy",
@@ -71,4 +84,5 @@ __all__ = [
     "silhouette_energy",
     "silhouette_iou",
     "soft_capsule_silhouettes",
+    "soft_render_capsules",
 ]

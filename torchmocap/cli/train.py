@@ -1,0 +1,122 @@
+"""``torchmocap-train``: train a learned likelihood term (Hydra; config ``conf/train.yaml``).
+
+Builds the training and validation clips (synthesised, with negatives from the configured
+tracker; cached), the term of ``term`` (bound to every clip's body and rig, one shared network),
+and runs :class:`~torchmocap.learning.trainer.Trainer`. Outputs in the run directory:
+``metrics.csv``, ``tb/`` (TensorBoard), ``checkpoints/last.pt`` and ``best.pt`` (resumable with
+``resume=<file>``), ``weights.pt`` (the best network, weights only; ``export=<path>`` writes a
+copy, e.g. into ``torchmocap/assets/learned/``) and ``summary.json``.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+
+def run(cfg: DictConfig, out: Path) -> dict:
+    """Train as configured; returns the summary written to ``out/summary.json``."""
+    import time
+
+    import torch
+
+    from torchmocap.assembly import build
+    from torchmocap.cli.runs import write_json_atomic
+    from torchmocap.learning import NegativeSettings, load_clip_set
+    from torchmocap.learning.trainer import EndToEndSettings, Trainer, TrainSettings
+    from torchmocap.likelihoods.learned import LearnedLikelihood
+
+    seed = cfg.seed
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise ValueError(f"seed: expected an integer, got {seed!r}")
+    o = cfg.objective
+    settings = TrainSettings(
+        objective=str(o.name), err_scale=float(o.err_scale),
+        err_rotation=float(o.get("err_rotation", 0.0)), base=str(o.base),
+        max_negatives=int(o.max_negatives), optimizer=str(cfg.optim.name),
+        lr=float(cfg.optim.lr), weight_decay=float(cfg.optim.weight_decay),
+        schedule=str(cfg.optim.schedule), grad_clip=float(cfg.optim.grad_clip),
+        batch_size=int(cfg.batch_size), epochs=int(cfg.epochs), seed=int(seed),
+        device=str(cfg.device),
+        end_to_end=EndToEndSettings(**OmegaConf.to_container(o.end_to_end, resolve=True)))
+    settings.check()  # settings errors before any synthesis
+    n = cfg.data.negatives
+    neg = NegativeSettings(tracker=str(n.tracker), num_particles=int(n.num_particles),
+                           proposal_negatives=int(n.proposal_negatives),
+                           scales=tuple(float(s) for s in n.scales),
+                           hard_negatives=int(n.hard_negatives), stride=int(n.stride),
+                           overrides=tuple(str(x) for x in n.get("overrides") or ()))
+    t0 = time.perf_counter()
+    d = cfg.data
+    common = dict(scenarios=list(d.scenarios), seeds=list(d.seeds), negatives=neg,
+                  cache_dir=d.cache_dir, progress=bool(cfg.progress),
+                  scenario_overrides=OmegaConf.to_container(d.scenario_overrides, resolve=True))
+    clips = OmegaConf.to_container(d.train_clips, resolve=True)
+    val_clips = OmegaConf.to_container(d.val_clips, resolve=True) if d.val_clips else []
+    train = load_clip_set(clips, **common)
+    mining = cfg.data.get("mining")
+    if mining:  # more negatives: particle sets of another tracker (e.g. the last round's)
+        import dataclasses
+
+        mined = dataclasses.replace(neg, overrides=tuple(str(x) for x in mining.overrides),
+                                    proposal_negatives=int(mining.get("proposal_negatives", 0)))
+        extra = load_clip_set(clips, **{**common, "negatives": mined})
+        for c in extra:
+            for f in c.frames:
+                f.clip += len(train)
+        train = train + extra
+    val = load_clip_set(val_clips, **common) if val_clips else []
+    t_data = time.perf_counter() - t0
+    torch.manual_seed(int(seed))  # the network's initialisation
+    term = build(cfg.term, train[0].runtime, _path="term")
+    if not isinstance(term, LearnedLikelihood):
+        raise ValueError(f"term: {cfg.term._target_} is not a learned likelihood term")
+    if cfg.get("init_weights"):
+        term.load_weights(str(cfg.init_weights))
+    trainer = Trainer(term, train, val, settings, out,
+                      train_config=OmegaConf.to_container(cfg, resolve=True),
+                      tensorboard=bool(cfg.get("tensorboard", True)),
+                      progress=bool(cfg.progress),
+                      base_likelihood=o.get("base_likelihood"))
+    if cfg.get("resume"):
+        trainer.resume(str(cfg.resume))
+    t1 = time.perf_counter()
+    metrics = trainer.fit()
+    t_train = time.perf_counter() - t1
+    weights = trainer.export(out / "weights.pt")
+    if cfg.get("export"):
+        trainer.export(Path(str(cfg.export)))
+    summary = {"term": type(term).__name__, "config": term.config,
+               "parameters": sum(p.numel() for p in term.net.parameters()),
+               "train_frames": sum(len(c.frames) for c in train),
+               "val_frames": sum(len(c.frames) for c in val),
+               "seconds_data": t_data, "seconds_training": t_train,
+               "epochs": trainer.epoch, "final": metrics[-1] if metrics else {},
+               "weights": str(weights)}
+    write_json_atomic(summary, out / "summary.json")
+    return summary
+
+
+@hydra.main(config_path="../conf", config_name="train", version_base="1.3")
+def _hydra_main(cfg: DictConfig) -> None:
+    from hydra.core.hydra_config import HydraConfig
+
+    out = Path(HydraConfig.get().runtime.output_dir)
+    s = run(cfg, out)
+    f = s["final"]
+    print(f"torchmocap-train: {s['epochs']} epochs in {s['seconds_training']:.0f} s "
+          f"(data {s['seconds_data']:.0f} s); val ranking {f.get('val_ranking', float('nan')):.4f}"
+          f", pairwise accuracy {f.get('val_pair_acc', float('nan')):.3f}; weights "
+          f"{s['weights']}", file=sys.stderr)
+
+
+def main() -> None:
+    """Console entry point."""
+    _hydra_main()
+
+
+if __name__ == "__main__":
+    main()
