@@ -178,7 +178,11 @@ class Trainer:
                 from torch.utils.tensorboard import SummaryWriter
 
                 self.writer = SummaryWriter(str(self.out / "tb"))
-            except ImportError:  # tensorboard not installed: CSV only
+            except ImportError:  # tensorboard not installed: CSV only, and say so
+                import warnings
+
+                warnings.warn("tensorboard is not installed: training metrics go to "
+                              "metrics.csv only (pip install 'torchmocap[train]')", stacklevel=2)
                 self.writer = None
         self._base_cache: dict[tuple[int, int, int], torch.Tensor] = {}
         self._base_liks: dict[int, Any] = {}
