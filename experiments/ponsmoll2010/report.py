@@ -233,6 +233,10 @@ def fidelity() -> str:
     for v in variants:
         cells, means = [], []
         for _, c in conditions:
+            if not (root / v / c).is_dir():  # a variant run on one condition only
+                cells += ["–"] * len(acts)
+                means.append(None)
+                continue
             ms = []
             for a in acts:
                 r = combine(runs_of(f"fidelity/{v}", c, a))
@@ -240,7 +244,7 @@ def fidelity() -> str:
                 ms.append(r["ori_mean"])
             means.append(sum(ms) / len(ms))
         lines.append(f"| {v} | " + " | ".join(cells) + " | "
-                     + " | ".join(f"**{m:.1f}**" for m in means) + " |")
+                     + " | ".join("–" if m is None else f"**{m:.1f}**" for m in means) + " |")
     return "\n".join(lines)
 
 
