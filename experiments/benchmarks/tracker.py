@@ -14,9 +14,10 @@ Run:  python experiments/benchmarks/tracker.py [--threads 2] [--frames 12] [--ba
    for 200 particles x 15 layers on one core of this machine class (a number measured outside
    this script: PARSEC is not built here).
 
-``--baseline DIR`` also runs the same benchmark script of another checkout (e.g. a ``git
-worktree`` of an older commit) in a subprocess, alternating with this one ``--rounds`` times, and
-prints both tracker rows with their ratio: a before/after measured in one run.
+``--baseline DIR`` instead times tracker ``p`` of another checkout (e.g. a ``git worktree`` of an
+older commit) beside this one: each in a worker process driven by this script, one frame at a time
+in alternation (``--rounds`` frames each), and prints both medians and the median per-frame ratio —
+a before/after measured in one run, robust to the host's drift.
 """
 
 from __future__ import annotations
@@ -24,7 +25,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import re
 import statistics
 import subprocess
 import sys
@@ -34,7 +34,7 @@ from pathlib import Path
 import torch
 
 SHARED = Path(__file__).resolve().parents[3] / "shared" / "data"
-ROW = re.compile(r"\| tracker p, .*?, (silhouette[^|]*) \| ([0-9.]+) s/frame")
+
 
 
 def _median(fn, repeats):
@@ -122,18 +122,110 @@ def measure(frames: int, bodytrack: bool = True) -> list[str]:
     return rows
 
 
-def _baseline_rows(path: Path, threads: int, frames: int) -> dict[str, float]:
-    env = dict(os.environ, PYTHONPATH=str(path), OMP_NUM_THREADS=str(threads))
-    script = path / "experiments" / "benchmarks" / "tracker.py"
-    r = subprocess.run([sys.executable, str(script), "--threads", str(threads), "--frames",
-                        str(frames), "--no-bodytrack"], capture_output=True, text=True, env=env,
-                       cwd=path)
-    if r.returncode != 0:  # older scripts have no --no-bodytrack
-        r = subprocess.run([sys.executable, str(script), "--threads", str(threads), "--frames",
-                            str(frames)], capture_output=True, text=True, env=env, cwd=path)
-    if r.returncode != 0:
-        raise SystemExit(f"baseline {script} failed:\n{r.stderr[-2000:]}")
-    return {m.group(1).strip(): float(m.group(2)) for m in ROW.finditer(r.stdout)}
+def _worker(threads: int, frames: int, appearance: bool) -> None:
+    """Serve one tracker ``p`` of the checkout on ``sys.path``: build it, print ``ready``, then
+    time one frame per ``step`` line read from stdin (wall seconds, one line each). The frames
+    cycle through the clip; each cycle restarts from the truth at frame 0 (untimed), so every
+    cycle does the same work. Drives the pre-redesign API (``Tracker(body, rig,
+    TrackerConfig)``) as well as the assembled one."""
+    torch.set_num_threads(threads)
+    from torchmocap.data import synthesize
+    from torchmocap.data.subject import fit_subject
+    from torchmocap.io import bundled_clip_path, load_motion
+
+    clip = load_motion(bundled_clip_path()).resample(25).slice(0, frames + 1)
+    seq = synthesize(fit_subject(clip), "studio", seed=0)
+    tracking = seq.imu.tracking.nonzero()[:, 0]
+    import torchmocap
+
+    # an editable install's import hook would find this checkout's modules by name, so look
+    if not (Path(torchmocap.__file__).parent / "assembly.py").is_file():
+        # before the components redesign (e8e4446 and older)
+        from torchmocap.body import CapsuleBody
+        from torchmocap.filters.tracker import Tracker, TrackerConfig, frame_observation
+
+        sk = seq.ground_truth.build_skeleton().float()
+        sensors = {n: b for n, b, t in zip(seq.imu.names, seq.imu.bones,
+                                            seq.imu.tracking.tolist()) if t}
+        tr = Tracker(CapsuleBody(sk), seq.rig.float(),
+                     TrackerConfig(method="p", w_app=40.0 if appearance else 0.0),
+                     sensors=sensors, seed=0)
+        observe = frame_observation
+    else:
+        from torchmocap.assembly import Runtime, build_tracker, tracker_config
+
+        ov = [] if appearance else ["tracker.likelihood.weights.appearance=0"]
+        tr = build_tracker(tracker_config("p", ov), Runtime.from_sequence(seq), seed=0)
+        observe = tr.observe
+    obs = [observe(seq.frame(t), tracking) for t in range(seq.num_frames)]
+    theta0 = seq.ground_truth.theta[0].float()
+
+    def restart():
+        st = tr.init(theta0, obs[0])
+        return tr.step(st, obs[1])[0]
+
+    st, t = restart(), 2
+    print("ready", flush=True)
+    for line in sys.stdin:
+        if not line.strip():
+            break
+        if t >= len(obs):
+            st, t = restart(), 2
+        t0 = time.perf_counter()
+        st = tr.step(st, obs[t])[0]
+        print(time.perf_counter() - t0, flush=True)
+        t += 1
+
+
+class _Worker:
+    """A :func:`_worker` subprocess running this script with ``checkout`` on its path."""
+
+    def __init__(self, checkout: Path, threads: int, frames: int, appearance: bool):
+        env = dict(os.environ, PYTHONPATH=str(checkout), OMP_NUM_THREADS=str(threads))
+        args = [sys.executable, str(Path(__file__).resolve()), "--worker", "--threads",
+                str(threads), "--frames", str(frames)]
+        self.proc = subprocess.Popen(args + ([] if appearance else ["--no-appearance"]),
+                                     cwd=checkout, env=env, text=True, stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        if self.proc.stdout.readline().strip() != "ready":
+            raise SystemExit(f"worker in {checkout} failed:\n{self.proc.stderr.read()[-2000:]}")
+
+    def step(self) -> float:
+        self.proc.stdin.write("step\n")
+        self.proc.stdin.flush()
+        return float(self.proc.stdout.readline())
+
+    def close(self) -> None:
+        self.proc.stdin.close()
+        self.proc.wait()
+
+
+def before_after(baseline: Path, threads: int, frames: int, rounds: int) -> None:
+    """Tracker ``p`` of ``baseline`` and of this checkout, frame by frame in alternation.
+
+    Both run in worker processes with the same harness; the frames are interleaved ``A B B A``
+    so the two share the host's drift (on a shared machine the speed of a core changes by up to
+    2x within minutes, which made separate runs of each checkout disagree by more than the
+    difference being measured). Prints each side's median s/frame and the median of the
+    per-frame ratios with its interquartile range."""
+    here = Path(__file__).resolve().parents[2]
+    print(f"| tracker p, 200 x 15 ({rounds} frames each, interleaved) | baseline {baseline.name} "
+          f"s/frame | this checkout s/frame | speed ratio (baseline / this), IQR |")
+    print("|---|---|---|---|")
+    for appearance, label in ((True, "silhouette + appearance"), (False, "silhouette only")):
+        a = _Worker(baseline, threads, frames, appearance)
+        b = _Worker(here, threads, frames, appearance)
+        ta, tb = [], []
+        for i in range(rounds):
+            order = (a, b) if i % 2 == 0 else (b, a)
+            for w in order:
+                (ta if w is a else tb).append(w.step())
+        a.close()
+        b.close()
+        q = statistics.quantiles([x / y for x, y in zip(ta, tb)], n=4)
+        print(f"| {label} | {statistics.median(ta):.3f} | {statistics.median(tb):.3f} | "
+              f"{statistics.median([x / y for x, y in zip(ta, tb)]):.2f}x "
+              f"({q[0]:.2f}-{q[2]:.2f}) |")
 
 
 def main():
@@ -142,9 +234,15 @@ def main():
     ap.add_argument("--frames", type=int, default=12)
     ap.add_argument("--baseline", type=Path, default=None,
                     help="another checkout to time in the same run (before/after)")
-    ap.add_argument("--rounds", type=int, default=3, help="alternations with --baseline")
+    ap.add_argument("--rounds", type=int, default=60,
+                    help="frames timed per checkout with --baseline")
     ap.add_argument("--no-bodytrack", action="store_true", help="skip the real-frame row")
+    ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--no-appearance", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.worker:
+        _worker(args.threads, args.frames, not args.no_appearance)
+        return
     torch.set_num_threads(args.threads)
     print(f"# torch {torch.__version__}, {torch.get_num_threads()} threads, "
           f"{platform.processor() or platform.machine()}")
@@ -153,23 +251,7 @@ def main():
         print("|---|---|---|")
         print("\n".join(measure(args.frames, not args.no_bodytrack)))
         return
-    ours: dict[str, list[float]] = {}
-    base: dict[str, list[float]] = {}
-    for _ in range(args.rounds):
-        for k, v in _baseline_rows(args.baseline.resolve(), args.threads, args.frames).items():
-            base.setdefault(k, []).append(v)
-        for row in measure(args.frames, bodytrack=False):
-            m = ROW.search(row)
-            if m:
-                ours.setdefault(m.group(1).strip(), []).append(float(m.group(2)))
-    print(f"| tracker p, 200 x 15 | baseline {args.baseline.name} s/frame (median of "
-          f"{args.rounds}) | this checkout s/frame | speed ratio (baseline / this) |")
-    print("|---|---|---|---|")
-    for k in ours:
-        if k in base:
-            b, o = statistics.median(base[k]), statistics.median(ours[k])
-            print(f"| {k} | {b:.3f} ({', '.join(f'{x:.3f}' for x in base[k])}) | {o:.3f} "
-                  f"({', '.join(f'{x:.3f}' for x in ours[k])}) | {b / o:.2f}x |")
+    before_after(args.baseline.resolve(), args.threads, args.frames, args.rounds)
 
 
 if __name__ == "__main__":

@@ -73,6 +73,26 @@ class TestEssTargetBeta:
                 float(sol.beta[i, 2]), rel=1e-9
             )
 
+    @pytest.mark.parametrize("alpha", [0.1, 0.5, 1.0])
+    def test_numpy_solver_matches_torch_solver(self, alpha):
+        """CPU inputs take a numpy solver (per-op cost); it must give the torch solver's β on
+        every edge case: +inf energies, ties at the minimum, all equal (cap), batches."""
+        from torchmocap.filters.annealing import _solve_beta_torch
+
+        g = torch.Generator().manual_seed(5)
+        sets = _energy_sets() + [torch.randn(3, 4, 50, generator=g, dtype=torch.float64)]
+        tied = torch.rand(40, generator=g, dtype=torch.float64)
+        tied[:20] = tied.min()
+        inf = torch.rand(40, generator=g, dtype=torch.float64)
+        inf[:25] = math.inf
+        sets += [tied, inf, torch.full((30,), 2.0, dtype=torch.float64)]
+        for v in sets:
+            a = ess_target_beta(v, alpha)
+            b = _solve_beta_torch(v, alpha, 1e12, 48)
+            assert a.beta.shape == b.beta.shape and a.beta.dtype == torch.float64
+            torch.testing.assert_close(a.beta, b.beta, rtol=1e-12, atol=0)
+            torch.testing.assert_close(a.ess_fraction, b.ess_fraction, rtol=1e-12, atol=1e-14)
+
     def test_all_equal_caps(self):
         sol = ess_target_beta(torch.full((50,), 3.0), 0.5, beta_max=1e6)
         assert float(sol.beta) == 1e6
