@@ -12,7 +12,9 @@ floored at ``1 / max_std^2``). Samplers:
 
 * **KJS** — every leaf of the product of the interpretation trees of a chain partition
   (deterministic; ``KJS1``: left arm, right arm, left leg; ``KJS2``: left leg, right leg, right
-  arm; ``KJS4``: all four limbs), pruned by the joint limits;
+  arm; ``KJS4``: all four limbs), pruned by the joint limits; rows ``..., flips >= 5 mm`` drop
+  the near-tangent flips that move their child joint by less than ``--min-flip-mm`` (a link
+  almost perpendicular to its camera ray: the two ray-sphere roots nearly coincide);
 * **CSS** — ``N(mu, s Sigma)``, ``s`` = 1, 4, 8, 16, and Cauchy tails (HT) at ``s = 1``;
 * **SS** — the same with the isotropic covariance of equal volume.
 
@@ -158,11 +160,15 @@ def run(args) -> dict:
         return row
 
     rows = []
-    for name, chains in PARTITIONS.items():
+    variants = [(name, chains, 0.0) for name, chains in PARTITIONS.items()]
+    if args.min_flip_mm > 0:  # the same trees without near-tangent flips (min_flip)
+        variants += [(f"{name}, flips >= {args.min_flip_mm:g} mm", chains,
+                      args.min_flip_mm / 1000) for name, chains in PARTITIONS.items()]
+    for name, chains, min_flip in variants:
         t0 = time.perf_counter()
-        j = kinematic_jumps(sk, mu, chains, c)
+        j = kinematic_jumps(sk, mu, chains, c, min_flip=min_flip)
         rows.append(stats(name, j.theta, time.perf_counter() - t0))
-        rows[-1].update(leaves=j.leaves, valid=j.valid, chains=chains)
+        rows[-1].update(leaves=j.leaves, valid=j.valid, chains=chains, min_flip=min_flip)
     g = torch.Generator().manual_seed(args.seed)
     for kind, scale, tails in RANDOM_ROWS:
         prop = CovarianceScaledProposal(sk, scale=scale, tails=tails, spherical=kind == "SS")
@@ -212,7 +218,7 @@ def markdown(res: dict) -> str:
             f"| {_f(r['param_no_opt'])} | {_f(r['param_opt'])} | {pc[1]} "
             f"| {_f(r['std_no_opt'], 1)} | {_f(r['std_opt'], 1)} | {pc[2]} "
             f"| {_f(r['cost_no_opt'], 4)} | {_f(r['cost_opt'], 4)} | {pc[3]} |")
-    kjs = [r for r in res["rows"] if r["method"].startswith("KJS")]
+    kjs = [r for r in res["rows"] if r["method"].startswith("KJS") and not r.get("min_flip")]
     lines += ["", "KJS trees: " + "; ".join(
         f"{r['method']} = {' x '.join(r['chains'])}: {r['leaves']} leaves, {r['valid']} with "
         f"every ray hitting, {r['samples']} within the joint limits" for r in kjs) + "."]
@@ -231,6 +237,9 @@ def main(argv=None) -> None:
     ap.add_argument("--distinct-mm", type=float, default=5.0)
     ap.add_argument("--distinct-rad", type=float, default=0.05)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--min-flip-mm", type=float, default=5.0,
+                    help="also the KJS rows without flips that move their child by less than "
+                         "this (near-tangent links; 0: skip those rows)")
     ap.add_argument("--exclude", nargs="*", default=["l_hand", "r_hand"],
                     help="joints left out of the 2D cost (e.g. l_hand r_hand: human31 has no "
                          "wrist DoF, so a flipped forearm cannot keep the hand on its ray)")

@@ -15,6 +15,7 @@ from torchmocap.filters import (
     ManifoldMeanEstimator,
     ShrinkingDiffusion,
     SpreadDiffusion,
+    TemporalMapEstimator,
     WeightedMeanEstimator,
 )
 from torchmocap.filters.annealing import ESSSchedule
@@ -165,6 +166,40 @@ class TestEstimators:
         assert BestParticleEstimator()(x, w).tolist() == [2.0, 3.0]
         with pytest.raises(ValueError, match="weights"):
             WeightedMeanEstimator()(x, torch.ones(3))
+
+    def test_temporal_map_closed_form(self):
+        """Score = log w - 1/2 sum ((x - m) / sigma)^2, rotations wrapped, translations in
+        metres: equal weights pick the mode nearer the prediction; a large enough weight ratio
+        overrides it (the switch point is the closed form's); no prediction = largest weight."""
+        sk = human31().double()
+        est = TemporalMapEstimator(sk, rotation_std_deg=10.0, translation_std=0.05)
+        m = sk.zero_pose()
+        i = sk.dof_index("l_shoulder_flex")
+        near, far = m.clone(), m.clone()
+        near[i], far[i] = math.radians(10), math.radians(-30)  # 1 and 3 sigma
+        x = torch.stack([far, near])
+        ctx = ProposalContext(previous=m)
+        assert torch.equal(est(x, torch.tensor([0.5, 0.5], dtype=F64), ctx), near)
+        # far wins once log(w_far / w_near) > (9 - 1) / 2 = 4 nats
+        for ratio, winner in ((math.exp(3.9), near), (math.exp(4.1), far)):
+            w = torch.tensor([ratio, 1.0], dtype=F64)
+            assert torch.equal(est(x, w / w.sum(), ctx), winner)
+        s = est.log_scores(x, torch.tensor([0.5, 0.5], dtype=F64), m)
+        assert s.tolist() == pytest.approx([math.log(0.5) - 4.5, math.log(0.5) - 0.5])
+        # wrapping: 359 deg from the prediction is 1 deg away; translations use metres
+        wrapped = m.clone()
+        wrapped[i] = math.radians(359)
+        t = sk.translation_dofs[0]
+        moved = m.clone()
+        moved[t] = 0.1  # 2 sigma
+        s = est.log_scores(torch.stack([wrapped, moved]), torch.tensor([0.5, 0.5], dtype=F64), m)
+        assert s.tolist() == pytest.approx([math.log(0.5) - 0.005, math.log(0.5) - 2.0])
+        # without a prediction: the largest weight
+        assert torch.equal(est(x, torch.tensor([0.6, 0.4], dtype=F64)), far)
+        with pytest.raises(ValueError, match="rotation_std_deg"):
+            TemporalMapEstimator(sk, rotation_std_deg=0.0)
+        with pytest.raises(ValueError, match="weights"):
+            est(x, torch.ones(3, dtype=F64), ctx)
 
     def test_root_rotation_mean_on_so3(self):
         """Headings of +179 and -179 deg average to 180, not to 0."""

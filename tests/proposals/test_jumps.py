@@ -88,6 +88,32 @@ class TestLimbFlips:
         # kept leaves are inside the joint limits
         assert bool(sk.within_limits(poses, tol=1e-9).all())
 
+    @pytest.mark.parametrize("limb", LIMBS)
+    def test_min_flip_drops_exactly_the_near_tangent_leaves(self, mono, limb):
+        """With ``min_flip`` a leaf survives iff every flip it makes moves its child joint by at
+        least that much against the leaf without that flip (checked leaf by leaf); 0 changes
+        nothing; the unflipped pose is always kept."""
+        sk, rig, th = mono
+        c = rig.camera_centers()[0]
+        base = limb_flips(sk, th[None], limb, c)
+        moves = []
+        for i in range(base.flips.shape[0]):
+            for k in range(base.flips.shape[1]):
+                if base.flips[i, k] and base.valid[0, i]:
+                    moves.append(float((base.positions[0, i, k + 1]
+                                        - base.positions[0, i ^ (1 << k), k + 1]).norm()))
+        thr = sorted(moves)[len(moves) // 2]  # drops about half of the flipped links
+        f = limb_flips(sk, th[None], limb, c, min_flip=thr)
+        for i in range(base.flips.shape[0]):
+            ok = all(float((base.positions[0, i, k + 1]
+                            - base.positions[0, i ^ (1 << k), k + 1]).norm()) >= thr
+                     for k in range(base.flips.shape[1]) if base.flips[i, k])
+            assert bool(f.kept[0, i]) == (bool(base.kept[0, i]) and (ok or i == 0))
+        assert int(f.kept.sum()) < int(base.kept.sum())
+        assert torch.equal(limb_flips(sk, th[None], limb, c, min_flip=0.0).kept, base.kept)
+        with pytest.raises(ValueError, match="min_flip"):
+            limb_flips(sk, th[None], limb, c, min_flip=-1.0)
+
     def test_feature_link_subsets(self, mono):
         sk, rig, th = mono
         c = rig.camera_centers()[0]

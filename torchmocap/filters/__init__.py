@@ -29,6 +29,7 @@ from torchmocap.filters.estimators import (
     BestParticleEstimator,
     Estimator,
     ManifoldMeanEstimator,
+    TemporalMapEstimator,
     WeightedMeanEstimator,
 )
 from torchmocap.filters.inference import (
@@ -109,6 +110,7 @@ __all__ = [
     "LocalOptimiser",
     "LocalResult",
     "ManifoldMeanEstimator",
+    "TemporalMapEstimator",
     "MissingObservationError",
     "MixtureInference",
     "MultinomialResampler",

@@ -13,10 +13,17 @@ normalised ``weights`` and the frame's :class:`~torchmocap.proposals.ProposalCon
   particles themselves carry (``sensors="particles"``: Pons-Moll eq. 18, whose particles are
   ``g^{-1}(x_a^i, z~^i)`` with their own noisy sensors ``z~^i`` — the estimate's passive joints
   may then deviate from a misaligned measurement, Fig. 4b);
-* :class:`BestParticleEstimator` — the highest-weight particle.
+* :class:`BestParticleEstimator` — the highest-weight particle;
+* :class:`TemporalMapEstimator` — the particle (mode) of largest ``weight x N(θ; prediction,
+  diag σ²)``: the MAP of the filtering posterior under a Gaussian temporal prior about the
+  prediction. With a multi-modal set whose mirror-image modes have the same likelihood (monocular
+  depth ambiguity) the weights alone cannot choose; the prior keeps the estimate on the
+  interpretation it followed, while the other modes stay in the set.
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 from torch import nn
@@ -25,6 +32,7 @@ __all__ = [
     "BestParticleEstimator",
     "Estimator",
     "ManifoldMeanEstimator",
+    "TemporalMapEstimator",
     "WeightedMeanEstimator",
 ]
 
@@ -143,6 +151,54 @@ class BestParticleEstimator(Estimator):
     def forward(self, particles, weights, context=None):
         _check(particles, weights)
         return particles[int(torch.argmax(weights))]
+
+
+class TemporalMapEstimator(Estimator):
+    """The particle maximising ``log w_i − ½ Σ_d ((θ_i,d − m_d) / σ_d)²`` with ``m`` the
+    prediction (``context.previous (D,)``): the weight times a Gaussian temporal prior.
+
+    Args:
+        skeleton: the model (its translation DoFs get ``translation_std``, rotation differences
+            are wrapped to ``(−π, π]``).
+        rotation_std_deg: ``σ`` of every rotation DoF (degrees).
+        translation_std: ``σ`` of the translation DoFs (metres).
+
+    Without a ``(D,)`` prediction in the context it is :class:`BestParticleEstimator`.
+    """
+
+    def __init__(self, skeleton=None, rotation_std_deg: float = 20.0,
+                 translation_std: float = 0.1) -> None:
+        super().__init__()
+        for name, v in (("rotation_std_deg", rotation_std_deg),
+                        ("translation_std", translation_std)):
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
+                    or v <= 0:
+                raise ValueError(f"{name}: expected a finite number > 0, got {v!r}")
+        self.rotation_std = math.radians(rotation_std_deg)
+        self.translation_std = float(translation_std)
+        self.translation_dofs = [] if skeleton is None else list(skeleton.translation_dofs)
+
+    def log_scores(self, particles: torch.Tensor, weights: torch.Tensor,
+                   prediction: torch.Tensor) -> torch.Tensor:
+        """``(P,)`` log weight plus log temporal prior (up to a constant) of each particle."""
+        d = particles - prediction.to(particles)
+        rot = torch.ones(d.shape[-1], dtype=torch.bool, device=d.device)
+        rot[self.translation_dofs] = False
+        d = torch.where(rot, torch.remainder(d + math.pi, 2 * math.pi) - math.pi, d)
+        std = torch.where(rot, self.rotation_std, self.translation_std).to(d)
+        log_w = torch.log(weights.to(torch.float64).clamp_min(1e-300))
+        return log_w - 0.5 * ((d / std) ** 2).sum(-1).to(torch.float64)
+
+    def forward(self, particles, weights, context=None):
+        _check(particles, weights)
+        prev = None if context is None else context.previous
+        if prev is None or prev.dim() != 1 or prev.shape[0] != particles.shape[1]:
+            return particles[int(torch.argmax(weights))]
+        return particles[int(torch.argmax(self.log_scores(particles, weights, prev)))]
+
+    def extra_repr(self) -> str:
+        return (f"rotation_std_deg={math.degrees(self.rotation_std):g}, "
+                f"translation_std={self.translation_std:g}")
 
 
 def as_estimator(e) -> Estimator:

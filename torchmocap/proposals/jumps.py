@@ -160,7 +160,8 @@ class LimbFlips:
 
 
 def limb_flips(skeleton, theta: torch.Tensor, chain, camera_center: torch.Tensor,
-               ik_method: str = "closed_form", ik_tol: float = 1e-3) -> LimbFlips:
+               ik_method: str = "closed_form", ik_tol: float = 1e-3,
+               min_flip: float = 0.0) -> LimbFlips:
     """Every forwards/backwards flip of one limb, as full poses.
 
     Args:
@@ -170,10 +171,16 @@ def limb_flips(skeleton, theta: torch.Tensor, chain, camera_center: torch.Tensor
         camera_center: ``(3,)`` optical centre (world, metres).
         ik_method: :func:`~torchmocap.ik.solve_limb` method.
         ik_tol: largest IK residual (metres) of a kept leaf.
+        min_flip: a flip that moves its child joint by less than this (metres) is not a new
+            interpretation: near tangency the two ray–sphere roots nearly coincide (a link
+            almost perpendicular to its camera ray), and the leaf is dropped in favour of the
+            one without that flip. 0 (default) keeps every leaf, as the paper's trees.
 
     Returns:
         :class:`LimbFlips` with ``L = 2^(number of flippable links)`` leaves per pose.
     """
+    if not (isinstance(min_flip, (int, float)) and math.isfinite(min_flip) and min_flip >= 0):
+        raise ValueError(f"min_flip: expected a number >= 0 (metres), got {min_flip!r}")
     ch = parse_chain(chain)
     spec = _limb_spec(ch.limb)
     plan = _plan(skeleton, spec)
@@ -188,6 +195,13 @@ def limb_flips(skeleton, theta: torch.Tensor, chain, camera_center: torch.Tensor
     pos = kin.positions[:, joints]  # (B, K+1, 3)
     tree = interpretation_tree(pos, camera_center.to(theta))
     flips = tree.flips
+    distinct = torch.ones(tree.valid.shape, dtype=torch.bool, device=theta.device)
+    if min_flip > 0:  # leaf i against leaf i XOR 2^k: the same tree without flipping link k
+        leaf_i = torch.arange(flips.shape[0], device=theta.device)
+        for k in range(K):
+            moved = (tree.positions[:, :, k + 1]
+                     - tree.positions[:, leaf_i ^ (1 << k), k + 1]).norm(dim=-1)
+            distinct &= ~(flips[:, k].to(theta.device)[None] & (moved < min_flip))
     if ch.links is not None:
         fixed = [k for k in range(K) if k not in ch.links]
         leaf = ~flips[:, fixed].any(-1) if fixed else torch.ones(flips.shape[0], dtype=torch.bool)
@@ -196,6 +210,7 @@ def limb_flips(skeleton, theta: torch.Tensor, chain, camera_center: torch.Tensor
         flips = flips[idx]
         positions = tree.positions[:, idx]
         valid = tree.valid[:, idx]
+        distinct = distinct[:, idx]
     else:
         positions, valid = tree.positions, tree.valid
     L = flips.shape[0]
@@ -206,7 +221,7 @@ def limb_flips(skeleton, theta: torch.Tensor, chain, camera_center: torch.Tensor
     out = res.theta.reshape(B, L, D)
     within = res.within_limits.reshape(B, L)
     resid = res.residual.reshape(B, L)
-    kept = valid & within & (resid <= ik_tol)
+    kept = valid & within & (resid <= ik_tol) & distinct
     # leaf 0 is the input pose itself
     out[:, 0] = theta
     kept[:, 0] = True
@@ -235,7 +250,7 @@ class KinematicJumps:
 
 def kinematic_jumps(skeleton, theta: torch.Tensor, chains: Sequence, camera_center: torch.Tensor,
                     ik_method: str = "closed_form", ik_tol: float = 1e-3,
-                    include_original: bool = True) -> KinematicJumps:
+                    include_original: bool = True, min_flip: float = 0.0) -> KinematicJumps:
     """All kept combinations of flips of ``chains`` (product of their trees) for one pose.
 
     Args:
@@ -245,6 +260,7 @@ def kinematic_jumps(skeleton, theta: torch.Tensor, chains: Sequence, camera_cent
         camera_center: ``(3,)``.
         ik_method, ik_tol: see :func:`limb_flips`.
         include_original: keep the combination without any flip (the input pose).
+        min_flip: see :func:`limb_flips`.
 
     Returns:
         :class:`KinematicJumps`.
@@ -255,7 +271,8 @@ def kinematic_jumps(skeleton, theta: torch.Tensor, chains: Sequence, camera_cent
         raise ValueError(f"chains: each limb at most once, got {[c.name for c in chs]}")
     if theta.dim() != 1:
         raise ValueError(f"theta: expected shape (D,), got {tuple(theta.shape)}")
-    per = [limb_flips(skeleton, theta[None], c, camera_center, ik_method, ik_tol) for c in chs]
+    per = [limb_flips(skeleton, theta[None], c, camera_center, ik_method, ik_tol, min_flip)
+           for c in chs]
     n_leaves = math.prod(p.flips.shape[0] for p in per)
     n_valid = math.prod(int(p.valid[0].sum()) for p in per)
     kept_idx = [p.kept[0].nonzero()[:, 0].tolist() for p in per]
@@ -322,14 +339,20 @@ class KinematicJumpProposal(Proposal):
         include_original: keep the unflipped start among the samples.
         ik_method, ik_tol: limb IK method and the largest residual (m) of a kept leaf.
         max_rounds: base draws to fill ``num`` samples.
+        min_flip: drop near-tangent flips that move their child by less than this (metres;
+            :func:`limb_flips`); 0 keeps every leaf.
     """
 
     def __init__(self, skeleton, rig, chains: Sequence = ("l_arm", "r_arm", "l_leg", "r_leg"),
                  select: str = "vote", num_chains: int = 1, camera: int = 0,
                  base: Proposal | None = None, include_original: bool = True,
                  ik_method: str = "closed_form", ik_tol: float = 1e-3,
-                 max_rounds: int = 8) -> None:
+                 max_rounds: int = 8, min_flip: float = 0.0) -> None:
         super().__init__()
+        if not (isinstance(min_flip, (int, float)) and math.isfinite(min_flip)
+                and min_flip >= 0):
+            raise ValueError(f"min_flip: expected a number >= 0 (metres), got {min_flip!r}")
+        self.min_flip = float(min_flip)
         if rig is None:
             raise ValueError("rig: kinematic jumps need the camera rig")
         if select not in SELECT:
@@ -393,7 +416,8 @@ class KinematicJumpProposal(Proposal):
             groups.setdefault(tuple(chosen[k]), []).append(i)
         for sel, members in groups.items():
             x = starts[members]
-            per = [limb_flips(self.skeleton, x, self.chains[m], c, self.ik_method, self.ik_tol)
+            per = [limb_flips(self.skeleton, x, self.chains[m], c, self.ik_method, self.ik_tol,
+                              self.min_flip)
                    for m in sel]
             for m in sel:
                 stats["votes"][self.chains[m].name] = stats["votes"].get(
