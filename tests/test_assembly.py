@@ -113,6 +113,9 @@ def test_errors_name_the_config_path(runtime):
         build({"x": 1}, runtime)
     with pytest.raises(ComponentError, match="expected a torchmocap.filters.Tracker"):
         build_tracker({"_target_": "builtins.dict"}, runtime)
+    for bad in (1.5, True, "3"):  # int() would run 1.5 as seed 1
+        with pytest.raises(ValueError, match="seed: expected an integer"):
+            build_tracker(tracker_config("p"), runtime, seed=bad)
 
 
 def test_a_user_component_enters_through_yaml_alone(runtime, monkeypatch):

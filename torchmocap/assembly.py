@@ -220,6 +220,11 @@ def build_tracker(config, runtime: Runtime, seed: int = 0):
     :func:`tracker_config`) for the given runtime dependencies."""
     from torchmocap.filters.tracker import Tracker
 
+    import numbers
+
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
+        # int() would silently run 1.5 as seed 1
+        raise ValueError(f"seed: expected an integer, got {seed!r}")
     tracker = build(config, runtime, _path="tracker", seed=int(seed))
     if not isinstance(tracker, Tracker):
         raise ComponentError(f"tracker: _target_ built a {type(tracker).__name__}, expected a "
