@@ -5,7 +5,7 @@
   redirected to the ``meta`` device — such a tensor in the hot path fails the frame
   (data-dependent ops on it, or mixing it with the CPU inputs).
 * No hidden round trip to the host: ``Tensor.cpu`` / ``Tensor.numpy`` are not called by
-  torchmocap during a frame (one deliberate exception, :data:`HOST_ON_PURPOSE`).
+  torchmocap during a frame (deliberate exceptions: :data:`HOST_ON_PURPOSE`).
 * Everything follows ``tracker.to(...)``: a float32 tracker moved with ``.double()`` tracks in
   float64 (the same mechanism moves it to a GPU), and the main components (FK, projection, the
   likelihood energy, proposals) give float64 outputs that agree with float32.
@@ -38,7 +38,9 @@ PRESETS = [
 IDS = ["p", "g", "gs", "rs", "p_sir", "ls", "hauberg_silhouette", "hauberg_depth", "kjs"]
 #: (file, function) allowed to copy to the host: the mixture tracker's greedy assignment of
 #: modes is a Python loop over a K x K0 (8 x 8) distance matrix — one copy instead of 64 syncs
-HOST_ON_PURPOSE = {("mixture.py", "bhattacharyya_reweight")}
+#: the mixture's greedy matching loop; the ESS β solve's numpy path, taken only for CPU tensors
+#: (``.numpy()`` shares their memory; a GPU tensor takes the torch solver)
+HOST_ON_PURPOSE = {("mixture.py", "bhattacharyya_reweight"), ("annealing.py", "ess_target_beta")}
 
 _FACTORIES = {torch.zeros, torch.ones, torch.empty, torch.full, torch.arange, torch.tensor,
               torch.as_tensor, torch.randn, torch.rand, torch.randint, torch.linspace,

@@ -218,9 +218,9 @@ def tracker_config(preset: str = "p", overrides: Sequence[str] = ()):
 def build_tracker(config, runtime: Runtime, seed: int = 0):
     """Build a :class:`~torchmocap.filters.Tracker` from its config node (e.g. from
     :func:`tracker_config`) for the given runtime dependencies."""
-    from torchmocap.filters.tracker import Tracker
-
     import numbers
+
+    from torchmocap.filters.tracker import Tracker
 
     if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
         # int() would silently run 1.5 as seed 1

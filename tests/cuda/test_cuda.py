@@ -93,3 +93,13 @@ def test_batched_seeds_on_cuda(sequences):
         tr.seed = s
         torch.testing.assert_close(t.theta, tr.run(seq, progress=False).theta, atol=5e-3,
                                    rtol=0)
+
+
+def test_ess_beta_on_the_gpu_equals_the_cpu_solver():
+    """A GPU tensor takes the torch solver (CPU tensors the numpy one): same β."""
+    from torchmocap.filters.annealing import ess_target_beta
+
+    v = torch.randn(3, 200, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    gpu = ess_target_beta(v.to(CUDA), 0.5)
+    assert gpu.beta.device.type == "cuda"
+    torch.testing.assert_close(gpu.beta.cpu(), ess_target_beta(v, 0.5).beta, rtol=1e-12, atol=0)
