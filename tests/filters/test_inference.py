@@ -198,6 +198,8 @@ class TestEstimators:
         assert torch.equal(est(x, torch.tensor([0.6, 0.4], dtype=F64)), far)
         with pytest.raises(ValueError, match="rotation_std_deg"):
             TemporalMapEstimator(sk, rotation_std_deg=0.0)
+        with pytest.raises(ValueError, match=r"context.previous: expected a \(31,\)"):
+            est(x, torch.tensor([0.5, 0.5], dtype=F64), ProposalContext(previous=m[:5]))
         with pytest.raises(ValueError, match="weights"):
             est(x, torch.ones(3, dtype=F64), ctx)
 

@@ -197,6 +197,16 @@ class TestManifoldProposal:
         bad = torch.zeros(5, 4, dtype=F64)
         with pytest.raises(ValueError, match="sensors"):
             ManifoldProposal(m).sample(ProposalContext(previous=th, sensors=bad), 10)
+        # the check runs once per sensors tensor (every layer of a frame passes the same one),
+        # but a tensor changed in place, or a new one, is checked again
+        prop = ManifoldProposal(m)
+        S = m.sensor_orientations(th).clone()
+        prop.sample(ProposalContext(previous=th, sensors=S), 10)
+        S.mul_(2.0)  # no longer rotations
+        with pytest.raises(ValueError, match="sensors"):
+            prop.sample(ProposalContext(previous=th, sensors=S), 10)
+        with pytest.raises(ValueError, match="sensors"):
+            prop.sample(ProposalContext(previous=th, sensors=2 * m.sensor_orientations(th)), 10)
 
     def test_module(self, setup):
         sk, m, th = setup

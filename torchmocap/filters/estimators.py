@@ -163,7 +163,8 @@ class TemporalMapEstimator(Estimator):
         rotation_std_deg: ``σ`` of every rotation DoF (degrees).
         translation_std: ``σ`` of the translation DoFs (metres).
 
-    Without a ``(D,)`` prediction in the context it is :class:`BestParticleEstimator`.
+    Without a ``(D,)`` prediction in the context (none, or a ``(P0, D)`` particle set) it is
+    :class:`BestParticleEstimator`.
     """
 
     def __init__(self, skeleton=None, rotation_std_deg: float = 20.0,
@@ -192,8 +193,12 @@ class TemporalMapEstimator(Estimator):
     def forward(self, particles, weights, context=None):
         _check(particles, weights)
         prev = None if context is None else context.previous
-        if prev is None or prev.dim() != 1 or prev.shape[0] != particles.shape[1]:
+        if prev is None or prev.dim() != 1:  # no single prediction (e.g. a particle set)
             return particles[int(torch.argmax(weights))]
+        if prev.shape[0] != particles.shape[1]:
+            raise ValueError(f"context.previous: expected a ({particles.shape[1]},) prediction "
+                             f"for particles of shape {tuple(particles.shape)}, got "
+                             f"{tuple(prev.shape)}")
         return particles[int(torch.argmax(self.log_scores(particles, weights, prev)))]
 
     def extra_repr(self) -> str:
