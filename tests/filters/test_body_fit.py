@@ -43,3 +43,39 @@ def test_recovers_thicker_limbs():
         SilhouetteBodyFit(body, rig, min_scale=1.5)
     with pytest.raises(ValueError, match="silhouettes"):
         fit(th, Frame(index=0, time=0.0))
+
+
+def test_tracker_refit_passes_alternate_pose_and_body():
+    """Coarse to fine on the first frame (``refit_passes``): pose refined with the fitted body,
+    kept only when its energy is lower, body refitted; a real_frame_hull preset in small."""
+    from torchmocap.assembly import Runtime, build_tracker, tracker_config
+    from torchmocap.filters import Tracker
+
+    sk = human31().float()
+    rig = make_ring_rig(4).float()
+    th = sk.zero_pose()
+    th[sk.dof_index("l_shoulder_abd")] = 1.4
+    truth = CapsuleBody(sk).float()
+    truth.radii.mul_(1.3)
+    frame = Frame(index=0, time=0.0, silhouettes=capsule_masks(truth, rig, th))
+    rt = Runtime(skeleton=sk, body=CapsuleBody(sk).float(), rig=rig)
+    cfg = tracker_config("real_frame_hull", [
+        "tracker.num_particles=40", "tracker.inference.layers=4", "tracker.inference.rounds=1",
+        "tracker.body_fit.iterations=10", "tracker.body_fit.stride=4"])
+    tr = build_tracker(cfg, rt, seed=0)
+    assert tr.refit_passes == 1 and tr.body_fit is not None
+    start = th.clone()
+    start[sk.dof_index("l_shoulder_abd")] = 0.0  # the arm down
+    state = tr.init(start[None], frame)
+    info = state.infos[0]
+    (p,) = info["refit"]
+    assert p["energy_after"] < p["energy_before"] or not p["kept"]
+    assert p["body_fit"]["iou_after"] >= info["body_fit"]["iou_after"] - 0.01
+    ratio = rt.body.radii / CapsuleBody(sk).float().radii
+    assert float(ratio.median()) > 1.1  # the body was fitted thicker, in place
+    with pytest.raises(ValueError, match="refit_passes"):
+        Tracker(sk, tr.predictor, tr.proposal, tr.likelihood, tr.inference, tr.estimator,
+                refit_passes=-1)
+    with pytest.raises(ValueError, match="refit_scale"):
+        Tracker(sk, tr.predictor, tr.proposal, tr.likelihood, tr.inference, tr.estimator,
+                refit_scale=0.0)

@@ -126,14 +126,28 @@ class Tracker(nn.Module):
         body_fit: optional callable ``(theta0, frame0) -> info`` run at :meth:`init` after the
             first pose is known, e.g. :class:`~torchmocap.filters.body_fit.SilhouetteBodyFit`
             (fits the capsule radii to the first frame; its body is saved in checkpoints).
+        refit_passes: with ``refine_first_frame`` and a ``body_fit``: coarse-to-fine passes
+            after the first fit — the first frame's pose is refined again with the fitted
+            body (the proposal's spread scaled by ``refit_scale``; the new pose is kept when
+            its energy is lower) and the body refitted at it. The pose found with the initial
+            (anthropometric) radii is biased by them, and the radii fitted at a biased pose
+            are too; each pass reduces both.
+        refit_scale: factor on the proposal's spread of the refit passes (the pose is close).
     """
 
     def __init__(self, skeleton, predictor, proposal: Proposal, likelihood: Likelihood,
                  inference: Inference, estimator: Estimator, num_particles: int = 200,
                  manifold=None, seed: int = 0, name: str = "tracker",
                  refine_first_frame: bool = False, clamp_estimate: bool = True,
-                 body_fit=None) -> None:
+                 body_fit=None, refit_passes: int = 0, refit_scale: float = 0.25) -> None:
         super().__init__()
+        if isinstance(refit_passes, bool) or not isinstance(refit_passes, int) \
+                or refit_passes < 0:
+            raise ValueError(f"refit_passes: expected an int >= 0, got {refit_passes!r}")
+        if not (isinstance(refit_scale, (int, float)) and not isinstance(refit_scale, bool)
+                and 0 < refit_scale <= 1):
+            raise ValueError(f"refit_scale: expected a number in (0, 1], got {refit_scale!r}")
+        self.refit_passes, self.refit_scale = refit_passes, float(refit_scale)
         if isinstance(num_particles, bool) or not isinstance(num_particles, int) \
                 or num_particles < 1:
             raise ValueError(f"num_particles: expected an int >= 1, got {num_particles!r}")
@@ -295,11 +309,36 @@ class Tracker(nn.Module):
             theta0, particles, log_w, carry = est, res.particles, res.log_weights, res.carry
         if self.body_fit is not None and frame0 is not None:
             info["body_fit"] = self.body_fit(theta0, frame0)
+            if self.refine_first_frame and self.refit_passes:
+                theta0, particles, log_w, carry = self._refit(theta0, frame0, g, info,
+                                                              (particles, log_w, carry))
         if self.manifold is not None and frame0 is not None and frame0.imu is not None:
             self.manifold.calibrate(theta0, self._sensors(frame0))
         return TrackState(history=theta0[None].clone(), frame=0, generator_state=g.get_state(),
                           estimates=[theta0.clone()], infos=[info], particles=particles,
                           log_weights=log_w, carry=carry)
+
+    def _refit(self, theta0: torch.Tensor, frame0, g: torch.Generator, info: dict, kept):
+        """The ``refit_passes`` of :meth:`init`: refine the pose ``(D,)`` with the fitted body,
+        keep it when its energy is lower, refit the body; returns the pose and the particle
+        set, weights and carry of the inference that produced it."""
+        passes = []
+        for _ in range(self.refit_passes):
+            t0 = time.perf_counter()
+            energy = self.frame_energy(frame0)
+            ctx = dataclasses.replace(self._context(theta0, frame0), scale=self.refit_scale)
+            est, res, _ = self._infer(ctx, frame0, g, energy)
+            with torch.no_grad():
+                v = energy(torch.stack([theta0, est]))
+            better = bool(v[1] < v[0])
+            if better:
+                theta0, kept = est, (res.particles, res.log_weights, res.carry)
+            fit = self.body_fit(theta0, frame0)
+            passes.append({"energy_before": float(v[0]), "energy_after": float(v[1]),
+                           "kept": better, "seconds": time.perf_counter() - t0,
+                           "body_fit": fit})
+        info["refit"] = passes
+        return (theta0, *kept)
 
     # ------------------------------------------------------------------ one frame
     def step(self, state: TrackState, frame, energy: FrameEnergy | None = None

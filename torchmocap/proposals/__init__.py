@@ -43,6 +43,12 @@ from torchmocap.proposals.spatial import (
     SpatialPriorProposal,
     tracked_joints,
 )
+from torchmocap.proposals.uncovered import (
+    UncoveredLimbProposal,
+    draw_limb_targets,
+    foreground_points,
+    unexplained_distance,
+)
 
 __all__ = [
     "AngularPriorProposal",
@@ -69,10 +75,13 @@ __all__ = [
     "SpatialPriorProposal",
     "TangentGaussianNoise",
     "UPPER_BODY",
+    "UncoveredLimbProposal",
     "VonMisesFisherNoise",
     "bound_particles",
     "chain_votes",
     "context_covariances",
+    "draw_limb_targets",
+    "foreground_points",
     "free_dofs",
     "kinematic_jumps",
     "limb_flips",
@@ -81,4 +90,5 @@ __all__ = [
     "select_ancestors",
     "select_chains",
     "tracked_joints",
+    "unexplained_distance",
 ]
