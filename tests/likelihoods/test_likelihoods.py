@@ -516,3 +516,120 @@ def test_appearance_energy_is_not_differentiable(tiny_scene):
     assert not e.requires_grad and e.grad_fn is None
     e2 = appearance_energy(sk(th[None] + 1e-9), body, pattern, rig, imgs)
     assert torch.equal(e, e2)
+
+
+@pytest.mark.parametrize("mode", ["rays", "outlier"])
+def test_appearance_occlusion_modes_match_a_loop_oracle(scene, mode):
+    """Self-occlusion handling against a per-point loop: ``rays`` drops the views whose line of
+    sight passes within a radius of another capsule's axis (densely sampled here), ``outlier``
+    drops the view farthest from the mean of the others when three or more views see a point."""
+    from torchmocap.body import rays_blocked_by_capsules, segment_distance
+    from torchmocap.likelihoods.appearance import appearance_energy, body_surface_pattern
+
+    sk, body, rig, th, _ = scene
+    g = torch.Generator().manual_seed(5)
+    C, (W, H) = rig.num_cameras, rig.image_size[0].tolist()
+    imgs = torch.randint(0, 256, (C, H, W, 3), generator=g, dtype=torch.uint8)
+    poses = th + 0.1 * torch.randn(2, sk.num_dofs, generator=g)
+    pattern = body_surface_pattern(body, 2, 3)
+    kin = sk(poses)
+    got = appearance_energy(kin, body, pattern, rig, imgs, occlusion=mode)
+    plain = appearance_energy(kin, body, pattern, rig, imgs)
+    centres = rig.camera_centers()
+    ep = body.endpoints(kin)
+    s = torch.linspace(0, 1, 2001)
+    hidden_views = grazing = 0
+    own = pattern["bone"]
+    t_, r_ = pattern["t"].float(), pattern["radial"].float()
+    n_all = torch.einsum("pnij,nj->pni", kin.rotations[:, body.parent_index[own]], r_)
+    a_, e_ = ep[:, own, 0], ep[:, own, 1]
+    pts_all = a_ + t_[None, :, None] * (e_ - a_) + body.radii.float()[own][None, :, None] * n_all
+    blocked = rays_blocked_by_capsules(centres, pts_all, ep, body.radii, own)
+    for p in range(2):
+        variances = []
+        for i in range(pattern["bone"].shape[0]):
+            b = int(pattern["bone"][i])
+            n = kin.rotations[p, body.parent_index[b]] @ pattern["radial"][i].float()
+            a, e = ep[p, b, 0], ep[p, b, 1]
+            x = a + pattern["t"][i].float() * (e - a) + body.radii[b] * n
+            cols = []
+            for c in range(C):
+                pix, _, vis = rig.project(x[None])
+                if not (vis[c, 0] and float((centres[c] - x) @ n) > 0):
+                    continue
+                if mode == "rays":
+                    d = x - centres[c]
+                    end = centres[c] + d * (1 - 0.005 / d.norm())
+                    ray = centres[c] + s[:, None] * (end - centres[c])
+                    dist = segment_distance(ray, ep[p]).amin(0) - body.radii
+                    dist[b] = float("inf")
+                    hidden = bool((dist < 0).any())
+                    if float(dist.abs().min()) < 1e-4:
+                        # grazing (within the oracle's sampling error; happens where a point
+                        # lies on the neighbouring capsule's skin): take the function's answer
+                        grazing += 1
+                        hidden = bool(blocked[c, p, i])
+                    if hidden:
+                        hidden_views += 1
+                        continue
+                u, v = (pix[c, 0] + 0.5).floor().long().tolist()
+                cols.append(imgs[c, v, u].double() / 255)
+            if mode == "outlier" and len(cols) >= 3:
+                X = torch.stack(cols)
+                others = (X.sum(0, keepdim=True) - X) / (len(cols) - 1)
+                worst = int(((X - others) ** 2).sum(-1).argmax())
+                cols = [col for j, col in enumerate(cols) if j != worst]
+            if len(cols) >= 2:
+                variances.append(torch.stack(cols).var(0, unbiased=False).mean())
+        assert got[p].item() == pytest.approx(torch.stack(variances).mean().item(), abs=1e-5)
+    assert not torch.allclose(got, plain)  # the mode changes the energy of these poses
+    if mode == "rays":
+        assert hidden_views > 0 and grazing <= 0.02 * blocked.numel()
+    with pytest.raises(ValueError, match="occlusion"):
+        appearance_energy(kin, body, pattern, rig, imgs, occlusion="zbuffer")
+    with pytest.raises(ValueError, match="occlusion"):
+        AppearanceLikelihood(body, rig, occlusion=True)
+
+
+def test_self_occlusion_handling_lowers_the_true_pose_energy():
+    """Images z-buffered from a capsule mesh (flat colour per body part, an arm across the
+    chest): a surface point hidden in a view reads the arm there, so without occlusion handling
+    the true pose pays a colour variance; ``rays`` and ``outlier`` remove a large part of it and
+    every mode still prefers the true pose to a perturbed one."""
+    from torchmocap.data.render import rasterize_zbuffer
+    from torchmocap.data.synthesis import body_surface
+
+    sk = human31()
+    body = CapsuleBody(sk)
+    rig = make_ring_rig(4).float()
+    th = sk.zero_pose()
+    th[sk.dof_index("r_shoulder_flex")] = 1.2   # right arm raised forward across the body
+    th[sk.dof_index("r_shoulder_abd")] = -0.9
+    th[sk.dof_index("r_elbow_flex")] = 1.6
+    th[sk.dof_index("l_elbow_flex")] = 1.0
+    surf = body_surface(sk, th[None].double(), kind="capsules")
+    g = torch.Generator().manual_seed(0)
+    part_colour = torch.rand(sk.num_joints, 3, generator=g)
+    C, (W, H) = rig.num_cameras, rig.image_size[0].tolist()
+    pix, z, _ = rig.double().project(surf.vertices[0])
+    zb = rasterize_zbuffer(pix, z, surf.faces, W, H)
+    imgs = torch.zeros(C, H, W, 3)
+    imgs[..., 1] = ((torch.arange(W) // 6) % 2).float()[None, None, :] * 0.8  # striped floor
+    face = zb.face.clamp_min(0)
+    imgs = torch.where(zb.mask[..., None], part_colour[surf.face_part[face]], imgs)
+    imgs = (imgs * 255).round().to(torch.uint8)
+    obs = Frame(index=0, time=0.0, images=imgs)
+    far = th.clone()
+    far[sk.dof_index("r_shoulder_flex")] -= 0.4
+    far[sk.dof_index("spine_twist")] += 0.2
+    e = {}
+    for mode in ("none", "rays", "outlier"):
+        lik = AppearanceLikelihood(body, rig, axial=4, around=6, occlusion=mode)
+        e[mode] = lik.energy(Poses(torch.stack([th, far]), sk), lik.prepare(obs))
+        assert e[mode][0] < e[mode][1]
+    # measured: none 0.0127 (far 0.0164), rays 0.0055 (0.0134), outlier 0.0085 (0.0112); what
+    # rays leaves is part-boundary pixels (nearest-pixel reads, the mesh's facets)
+    assert e["none"][0] > 0.008  # hidden points pay a variance at the truth
+    assert e["rays"][0] < 0.6 * e["none"][0]
+    assert e["outlier"][0] < 0.8 * e["none"][0]
+    assert e["rays"][1] / e["rays"][0] > 1.5 * e["none"][1] / e["none"][0]

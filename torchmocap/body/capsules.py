@@ -29,6 +29,7 @@ __all__ = [
     "capsules_to_trimesh",
     "export_mesh",
     "facing_camera",
+    "rays_blocked_by_capsules",
     "sample_capsule_surface",
     "segment_closest_points",
     "segment_distance",
@@ -190,6 +191,57 @@ def segment_distance(points: Tensor, endpoints: Tensor) -> Tensor:
     aa = (a * a).sum(-1)[..., None, :]  # (*, 1, B)
     d2 = pp - 2 * p_a + aa - 2 * s * (p_ab - a_ab[..., None, :]) + s * s * ab2[..., None, :]
     return d2.clamp_min(1e-12).sqrt()
+
+
+def rays_blocked_by_capsules(origins: Tensor, points: Tensor, endpoints: Tensor, radii: Tensor,
+                             own: Tensor | None = None, stop: float = 0.005) -> Tensor:
+    """Whether the line of sight from each origin to each point passes through a capsule.
+
+    The ray segment runs from ``origins (C, 3)`` (camera centres) to ``stop`` metres before each
+    point of ``points (P, N, 3)``; it is blocked when it comes closer than ``radii (B,)`` to the
+    axis of one of the capsules ``endpoints (P, B, 2, 3)`` (the closest points of two segments,
+    Ericson, *Real-Time Collision Detection* §5.1.9), skipping each point's own capsule
+    ``own (N,)`` (a point on a capsule's camera-facing skin is never hidden by that capsule).
+    Returns ``(C, P, N)`` bool. Memory and time are ``O(C P N B)``; no gradient.
+    """
+    if origins.dim() != 2 or origins.shape[-1] != 3:
+        raise ValueError(f"origins: expected shape (C, 3), got {tuple(origins.shape)}")
+    if points.dim() != 3 or points.shape[-1] != 3:
+        raise ValueError(f"points: expected shape (P, N, 3), got {tuple(points.shape)}")
+    if endpoints.dim() != 4 or endpoints.shape[-2:] != (2, 3) \
+            or endpoints.shape[0] != points.shape[0]:
+        raise ValueError(f"endpoints: expected shape ({points.shape[0]}, B, 2, 3), got "
+                         f"{tuple(endpoints.shape)}")
+    with torch.no_grad():
+        dt = points.dtype
+        endpoints = endpoints.to(dt)
+        o = origins.to(dt)[:, None, None, :]  # (C, 1, 1, 3)
+        d1 = points[None] - o  # (C, P, N, 3)
+        n1 = d1.norm(dim=-1, keepdim=True).clamp_min(_EPS)
+        d1 = d1 * (1 - stop / n1).clamp_min(0)
+        p2 = endpoints[:, :, 0]  # (P, B, 3)
+        d2 = endpoints[:, :, 1] - p2
+        r = o - p2[None]  # (C, P, B, 3): origin - capsule start
+        a = (d1 * d1).sum(-1)[..., None]  # (C, P, N, 1)
+        e = (d2 * d2).sum(-1).clamp_min(_EPS)[None, :, None]  # (1, P, 1, B)
+        b = torch.einsum("cpnk,pbk->cpnb", d1, d2)
+        c = torch.einsum("cpnk,cpbk->cpnb", d1, r)
+        f = (d2[None] * r).sum(-1)[:, :, None]  # (C, P, 1, B)
+        rr = (r * r).sum(-1)[:, :, None]
+        denom = a * e - b * b
+        s = torch.where(denom > 1e-12, ((b * f - c * e) / denom.clamp_min(1e-12)).clamp(0, 1),
+                        torch.zeros_like(b))
+        t = (b * s + f) / e
+        a_ = a.clamp_min(_EPS)
+        s = torch.where(t < 0, (-c / a_).clamp(0, 1), torch.where(t > 1, ((b - c) / a_)
+                                                                    .clamp(0, 1), s))
+        t = t.clamp(0, 1)
+        d2min = rr + s * s * a + t * t * e + 2 * s * c - 2 * t * f - 2 * s * t * b
+        hit = d2min < radii.to(dt).square()  # (C, P, N, B)
+        if own is not None:
+            hit = hit & (own.to(hit.device)[:, None] != torch.arange(
+                endpoints.shape[1], device=hit.device))
+        return hit.any(-1)
 
 
 def capsule_distance(points: Tensor, endpoints: Tensor, radii: Tensor,
