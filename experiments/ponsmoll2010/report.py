@@ -26,10 +26,12 @@ RESULTS = HERE / "results"
 
 ACTIVITIES = {"walking": "walking", "jumping": "jumping", "kicking": "kicking",
               "basketball": "basketball", "dancing": "dancing", "arm_rotation": "arm rotation"}
-METHODS = ["l", "ls", "g", "gs", "rs", "p"]
+METHODS = ["l", "ls", "g", "gs", "rs", "p", "p_fidelity"]
 PAPER_FIG8 = {"p": "**10.78 ± 8.5**", "gs": "not in Fig. 8", "g": "above P (GL)",
-              "rs": "not in Fig. 8", "ls": "above P", "l": "above P"}
+              "rs": "not in Fig. 8", "ls": "above P", "l": "above P", "p_fidelity": "–"}
 SEEDS = [0, 1, 2]
+#: column labels
+NAMES = {**{m: m.upper() for m in METHODS}, "p_fidelity": "P, fidelity options"}
 
 
 def load(figure: str, *parts: str) -> dict | None:
@@ -101,7 +103,7 @@ def fig8() -> str:
              "validation sensors and tracker seeds 0-2 (± spread of the per-seed means); outdoor "
              "scenario, up to 75 frames at 25 fps, 200 particles x 15 layers "
              f"(`+experiment=ponsmoll2010/fig8`, {p['seeds']} seeds per cell)", "",
-             "| activity | " + " | ".join(m.upper() for m in METHODS) + " |",
+             "| activity | " + " | ".join(NAMES[m] for m in METHODS) + " |",
              "|---|" + "---|" * len(METHODS)]
     for a, label in ACTIVITIES.items():
         lines.append(f"| {label} ({rows[(a, 'p')]['frames'] - 1} frames) | "
@@ -119,10 +121,10 @@ def fig8() -> str:
                  + " |")
     plt = _plt()
     fig, ax = plt.subplots(figsize=(8, 4))
-    w = 0.13
+    w = 0.8 / len(METHODS)
     for k, m in enumerate(METHODS):
-        ax.bar([i + (k - 2.5) * w for i in range(len(ACTIVITIES))],
-               [rows[(a, m)]["ori_mean"] for a in ACTIVITIES], w, label=m.upper(),
+        ax.bar([i + (k - (len(METHODS) - 1) / 2) * w for i in range(len(ACTIVITIES))],
+               [rows[(a, m)]["ori_mean"] for a in ACTIVITIES], w, label=NAMES[m],
                yerr=[rows[(a, m)]["seed_spread"] for a in ACTIVITIES], capsize=2)
     ax.set_xticks(range(len(ACTIVITIES)))
     ax.set_xticklabels(list(ACTIVITIES.values()), fontsize=8)
@@ -169,6 +171,12 @@ def fig10() -> str:
     noises = [("none", "p_nonoise"), ("Gaussian on passive parameters", "p_gaussian"),
               ("vMF, κ = 1000", "p")]
     paper = {"p_nonoise": 26.8, "p_gaussian": 13.0, "p": 7.3}
+    fid = [("none, fidelity options", "p_fidelity_nonoise"),
+           ("Gaussian, fidelity options", "p_fidelity_gaussian"),
+           ("vMF, fidelity options", "p_fidelity")]
+    if all((RUNS / "fig10" / t).is_dir() for _, t in fid):
+        noises += fid
+        paper.update({t: paper[b] for (_, t), b in zip(fid, ("p_nonoise", "p_gaussian", "p"))})
     res = {t: combine(runs_of("fig10", t)) for _, t in noises}
     lines = ["# Fig. 10: left-hip validation error (deg) of P with three sensor-noise models, "
              "walking clip with 5-10 deg sensor misalignment (studio), 200 x 15, 75 frames, "
@@ -183,10 +191,11 @@ def fig10() -> str:
     fig, ax = plt.subplots(figsize=(6, 3.5))
     for label, t in noises:
         y = res[t]["ori_per_bone_frame"]["l_hip"]
-        ax.plot([(i + 1) / 25 for i in range(len(y))], y, label=label)
+        ax.plot([(i + 1) / 25 for i in range(len(y))], y, label=label,
+                ls="--" if "fidelity" in t else "-")
     ax.set_xlabel("time (s)")
     ax.set_ylabel("left hip error (deg), mean of 3 seeds")
-    ax.legend()
+    ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(RESULTS / "fig10.png", dpi=110)
     plt.close(fig)
@@ -213,7 +222,8 @@ def control() -> str:
 
 
 #: the fidelity ablation's variants, cumulative, in the order they are reported
-VARIANTS = ["baseline", "eq18", "propagate", "motion", "floor", "limits"]
+VARIANTS = ["baseline", "eq18", "propagate", "motion", "floor", "limits", "body", "alpha",
+            "occlusion_vmf", "exact_sensors", "occlusion"]
 
 
 def fidelity() -> str:
@@ -250,7 +260,7 @@ def fidelity() -> str:
 
 LONG_CLIPS = {"boxing_long": "boxing (CMU21 box-1)",
               "jumping_jack_long": "jumping jacks (CMU21)"}
-LONG_METHODS = ["ls", "p"]
+LONG_METHODS = ["ls", "p", "p_fidelity"]
 
 
 def long() -> str:
@@ -279,11 +289,11 @@ def long() -> str:
             per_frame = [sum(v) / len(v) for v in zip(*curves)]
             k = min(125, len(per_frame) // 2)
             first, last = per_frame[:k], per_frame[-k:]
-            lines.append(f"| {label} | {m.upper()} ({r['seeds']} seeds) | {cell(r)} | "
+            lines.append(f"| {label} | {NAMES[m]} ({r['seeds']} seeds) | {cell(r)} | "
                          f"{sum(first) / k:.1f} | "
                          f"{sum(last) / k:.1f} | {r['seconds_per_frame']:.2f} |")
             ax = axes[0, i]
-            ax.plot([t / 25.0 for t in range(len(per_frame))], per_frame, label=m.upper(),
+            ax.plot([t / 25.0 for t in range(len(per_frame))], per_frame, label=NAMES[m],
                     lw=1)
         axes[0, i].set_title(label, fontsize=9)
         axes[0, i].set_xlabel("time (s)")

@@ -120,7 +120,8 @@ def test_p_beats_g_and_doing_nothing(walk):
     assert sum(errs_p) / 2 + 5.0 < sum(errs_g) / 2, (errs_p, errs_g)
 
 
-@pytest.mark.parametrize("preset", ["gs", "rs", "l", "ls", "p", "p_gaussian", "p_nonoise"])
+@pytest.mark.parametrize("preset", ["gs", "rs", "l", "ls", "p", "p_gaussian", "p_nonoise",
+                                    "p_fidelity"])
 def test_presets_track_a_few_frames(walk, preset):
     ov = [] if preset in ("l", "ls") else ["tracker.num_particles=60",
                                           "tracker.inference.layers=6"]
@@ -131,7 +132,7 @@ def test_presets_track_a_few_frames(walk, preset):
 
 def test_presets_are_compositions_of_the_documented_components():
     cfgs = {p: tracker_config(p) for p in ("p", "p_gaussian", "p_nonoise", "g", "gs", "rs",
-                                             "l", "ls", "real_frame")}
+                                             "l", "ls", "real_frame", "p_fidelity")}
     assert cfgs["p"].proposal._target_ == "torchmocap.proposals.ManifoldProposal"
     assert cfgs["p"].proposal.noise._target_ == "torchmocap.proposals.VonMisesFisherNoise"
     assert cfgs["p_gaussian"].proposal.noise._target_.endswith("PassiveGaussianNoise")
@@ -143,6 +144,13 @@ def test_presets_are_compositions_of_the_documented_components():
     assert cfgs["gs"].likelihood.terms.orientation.power == 1
     assert cfgs["ls"].likelihood.terms.silhouette.smooth is True
     assert cfgs["l"].inference._target_.endswith("LocalInference")
+    fid, p = cfgs["p_fidelity"], cfgs["p"]  # p plus one key per fidelity option
+    assert fid.proposal.noise == p.proposal.noise and fid.proposal.limits == "resample"
+    assert (fid.inference.propagate, fid.inference.motion_scale, fid.inference.diffusion.floor,
+            fid.inference.schedule.alpha) == ("particles", 1.0, 0.25, 0.1)
+    assert fid.estimator.sensors == "particles"
+    assert fid.likelihood.terms.appearance.occlusion == "outlier"
+    assert p.likelihood.terms.appearance.occlusion == "none" and p.inference.schedule.alpha == 0.5
     for name, c in cfgs.items():
         assert c.name == name
 
