@@ -69,3 +69,7 @@ def test_simple_cases():
         rays_blocked_by_capsules(o, pts[0], endpoints, radii)
     with pytest.raises(ValueError, match="endpoints"):
         rays_blocked_by_capsules(o, pts, endpoints[0], radii)
+    with pytest.raises(ValueError, match="radii"):
+        rays_blocked_by_capsules(o, pts, endpoints, radii[:1])
+    with pytest.raises(ValueError, match="own"):
+        rays_blocked_by_capsules(o, pts, endpoints, radii, own[:2])

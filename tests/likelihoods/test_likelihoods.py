@@ -273,6 +273,14 @@ def test_silhouette_energy_terms_closed_form():
     assert e_extra.item() == pytest.approx(0.5 * frac_uncovered, abs=0.02)
 
 
+def _surface_point(kin, body, pattern, ep, p: int, i: int):
+    """Pattern point ``i`` of pose ``p`` computed one at a time: (capsule, position, normal)."""
+    b = int(pattern["bone"][i])
+    n = kin.rotations[p, body.parent_index[b]] @ pattern["radial"][i].float()
+    a, e = ep[p, b, 0], ep[p, b, 1]
+    return b, a + pattern["t"][i].float() * (e - a) + body.radii[b] * n, n
+
+
 def test_appearance_energy_matches_a_loop_oracle(scene):
     from torchmocap.likelihoods.appearance import (
         appearance_energy,
@@ -298,10 +306,7 @@ def test_appearance_energy_matches_a_loop_oracle(scene):
         for vv, out in ((None, got), (view_valid, got_vv)):
             variances = []
             for i in range(pattern["bone"].shape[0]):
-                b = int(pattern["bone"][i])
-                n = kin.rotations[p, body.parent_index[b]] @ pattern["radial"][i].float()
-                a, e = ep[p, b, 0], ep[p, b, 1]
-                x = a + pattern["t"][i].float() * (e - a) + body.radii[b] * n
+                b, x, n = _surface_point(kin, body, pattern, ep, p, i)
                 cols = []
                 for c in range(C):
                     pix, _, vis = rig.project(x[None])
@@ -540,18 +545,13 @@ def test_appearance_occlusion_modes_match_a_loop_oracle(scene, mode):
     s = torch.linspace(0, 1, 2001)
     hidden_views = grazing = 0
     own = pattern["bone"]
-    t_, r_ = pattern["t"].float(), pattern["radial"].float()
-    n_all = torch.einsum("pnij,nj->pni", kin.rotations[:, body.parent_index[own]], r_)
-    a_, e_ = ep[:, own, 0], ep[:, own, 1]
-    pts_all = a_ + t_[None, :, None] * (e_ - a_) + body.radii.float()[own][None, :, None] * n_all
+    pts_all = torch.stack([torch.stack([_surface_point(kin, body, pattern, ep, p, i)[1]
+                                        for i in range(own.shape[0])]) for p in range(2)])
     blocked = rays_blocked_by_capsules(centres, pts_all, ep, body.radii, own)
     for p in range(2):
         variances = []
         for i in range(pattern["bone"].shape[0]):
-            b = int(pattern["bone"][i])
-            n = kin.rotations[p, body.parent_index[b]] @ pattern["radial"][i].float()
-            a, e = ep[p, b, 0], ep[p, b, 1]
-            x = a + pattern["t"][i].float() * (e - a) + body.radii[b] * n
+            b, x, n = _surface_point(kin, body, pattern, ep, p, i)
             cols = []
             for c in range(C):
                 pix, _, vis = rig.project(x[None])

@@ -212,6 +212,12 @@ def rays_blocked_by_capsules(origins: Tensor, points: Tensor, endpoints: Tensor,
             or endpoints.shape[0] != points.shape[0]:
         raise ValueError(f"endpoints: expected shape ({points.shape[0]}, B, 2, 3), got "
                          f"{tuple(endpoints.shape)}")
+    if radii.shape != endpoints.shape[1:2]:
+        raise ValueError(f"radii: expected shape ({endpoints.shape[1]},), got "
+                         f"{tuple(radii.shape)}")
+    if own is not None and own.shape != points.shape[1:2]:
+        raise ValueError(f"own: expected shape ({points.shape[1]},) capsule indices, got "
+                         f"{tuple(own.shape)}")
     with torch.no_grad():
         dt = points.dtype
         endpoints = endpoints.to(dt)
