@@ -108,6 +108,36 @@ def test_rounds_keep_the_best_and_shrink_the_spread():
     assert float((res.estimate - target).norm()) < 0.3
 
 
+def test_refine_descends_from_the_annealed_estimate_and_keeps_the_annealers_particles():
+    """Global search then local refinement: the estimate is the refined one (much closer to
+    the minimum than the 3-layer anneal alone), the particles and weights carried to the next
+    frame are exactly the annealer's."""
+    from types import SimpleNamespace
+
+    target = torch.tensor([0.5, -0.4, 0.3, 0.2], dtype=F64)
+    box = SimpleNamespace(lower=torch.full((4,), -2.0, dtype=F64),
+                          upper=torch.full((4,), 2.0, dtype=F64))
+    prop = GaussianDiffusionProposal(torch.full((4,), 0.3))
+    ctx = ProposalContext(torch.zeros(4, dtype=F64))
+    plain = AnnealedInference(layers=3)
+    refined = AnnealedInference(layers=3, refine=LocalInference(box, iterations=300, lr=0.02))
+    for seed in range(3):
+        a = plain(_quadratic(target), prop, WeightedMeanEstimator(), ctx, 50,
+                  torch.Generator().manual_seed(seed))
+        b = refined(_quadratic(target), prop, WeightedMeanEstimator(), ctx, 50,
+                    torch.Generator().manual_seed(seed))
+        err_a = float((a.estimate - target).norm())
+        err_b = float((b.estimate - target).norm())
+        assert err_a > 0.02 and err_b < 0.2 * err_a, (err_a, err_b)
+        assert torch.equal(a.particles, b.particles)
+        assert torch.equal(a.log_weights, b.log_weights)
+        assert b.info["refine"]["final_energy"] < b.info["refine"]["start_energy"]
+        assert b.info["refine"]["start_energy"] == pytest.approx(
+            float(_quadratic(target)(a.estimate[None])[0]))
+    with pytest.raises(TypeError, match="refine"):
+        AnnealedInference(refine="adam")
+
+
 def test_spread_diffusion_closed_form():
     x = torch.tensor([[0.0, 1.0], [2.0, 1.0], [4.0, 1.0]], dtype=F64)
     d = SpreadDiffusion(rho=0.5, decay=0.5, delta=1e-8)

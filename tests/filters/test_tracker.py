@@ -121,7 +121,7 @@ def test_p_beats_g_and_doing_nothing(walk):
 
 
 @pytest.mark.parametrize("preset", ["gs", "rs", "l", "ls", "p", "p_gaussian", "p_nonoise",
-                                    "p_fidelity"])
+                                    "p_fidelity", "p_refined"])
 def test_presets_track_a_few_frames(walk, preset):
     ov = [] if preset in ("l", "ls") else ["tracker.num_particles=60",
                                           "tracker.inference.layers=6"]
@@ -132,7 +132,8 @@ def test_presets_track_a_few_frames(walk, preset):
 
 def test_presets_are_compositions_of_the_documented_components():
     cfgs = {p: tracker_config(p) for p in ("p", "p_gaussian", "p_nonoise", "g", "gs", "rs",
-                                             "l", "ls", "real_frame", "p_fidelity")}
+                                             "l", "ls", "real_frame", "p_fidelity",
+                                             "p_refined")}
     assert cfgs["p"].proposal._target_ == "torchmocap.proposals.ManifoldProposal"
     assert cfgs["p"].proposal.noise._target_ == "torchmocap.proposals.VonMisesFisherNoise"
     assert cfgs["p_gaussian"].proposal.noise._target_.endswith("PassiveGaussianNoise")
@@ -151,6 +152,12 @@ def test_presets_are_compositions_of_the_documented_components():
     assert fid.estimator.sensors == "particles"
     assert fid.likelihood.terms.appearance.occlusion == "outlier"
     assert p.likelihood.terms.appearance.occlusion == "none" and p.inference.schedule.alpha == 0.5
+    ref = cfgs["p_refined"]  # p_fidelity + a local stage on LS's differentiable energy
+    assert p.inference.refine is None and ref.inference.refine._target_.endswith("LocalInference")
+    assert dict(ref.likelihood.weights) == dict(cfgs["ls"].likelihood.weights)
+    assert ref.likelihood.terms.silhouette.smooth is True
+    assert ref.likelihood.terms.appearance.occlusion == "outlier"
+    assert ref.inference.propagate == "particles" and ref.inference.schedule.alpha == 0.1
     for name, c in cfgs.items():
         assert c.name == name
 

@@ -188,14 +188,24 @@ class AnnealedInference(Inference):
             ``sqrt(own_std² + (motion_scale · |Δ|)²)`` with ``Δ`` the predicted displacement
             (prediction − last estimate) in the proposal's coordinates; 0 = the proposal's own
             std only. Fast limbs (100° in 0.16 s) outrun a fixed 3° spread.
+        refine: optional second stage (e.g. :class:`LocalInference`) started at the annealed
+            estimate — global search, then local refinement of the same energy (Gall et al.,
+            "Optimization and filtering for human motion capture", IJCV 2010). Its result is
+            the estimate; the particles and weights carried to the next frame stay the
+            annealer's. The energy must then be differentiable (a smooth likelihood).
     """
 
     PROPAGATE = ("prediction", "particles")
 
     def __init__(self, layers: int = 15, schedule="ess", selection="multinomial",
                  diffusion=None, rounds: int = 1, round_scale: float = 0.5,
-                 propagate: str = "prediction", motion_scale: float = 0.0) -> None:
+                 propagate: str = "prediction", motion_scale: float = 0.0,
+                 refine: Inference | None = None) -> None:
         super().__init__()
+        if refine is not None and not isinstance(refine, Inference):
+            raise TypeError(f"refine: expected an Inference module (e.g. LocalInference) or "
+                            f"None, got {type(refine).__name__}")
+        self.refine = refine
         if propagate not in self.PROPAGATE:
             raise ValueError(f"propagate: expected one of {self.PROPAGATE}, got {propagate!r}")
         if not (isinstance(motion_scale, (int, float)) and math.isfinite(motion_scale)
@@ -284,6 +294,12 @@ class AnnealedInference(Inference):
             else:
                 best = (cand, math.nan, res)
         est, _, res = best
+        if self.refine is not None:
+            ctx = dataclasses.replace(context, previous=est.detach(), log_weights=None)
+            ref = self.refine(energy, proposal, estimator, ctx, 1, generator)
+            info["refine"] = {k: v for k, v in ref.info.items()
+                              if isinstance(v, (int, float)) and not isinstance(v, bool)}
+            est = ref.estimate.detach().to(est.dtype)
         info["proposal"] = _summarise(all_stats)
         info["seconds_inference"] = time.perf_counter() - t0
         if self.rounds > 1:
@@ -296,7 +312,7 @@ class AnnealedInference(Inference):
         return (f"layers={self.layers}, schedule={self.schedule!r}, "
                 f"selection={self.selection!r}, diffusion={self.diffusion!r}, "
                 f"rounds={self.rounds}, propagate={self.propagate!r}, "
-                f"motion_scale={self.motion_scale}")
+                f"motion_scale={self.motion_scale}, refine={self.refine is not None}")
 
 
 class LocalInference(Inference):
