@@ -162,6 +162,18 @@ def test_presets_are_compositions_of_the_documented_components():
         assert c.name == name
 
 
+def test_descent_stages_refuse_the_non_differentiable_silhouette(walk):
+    from torchmocap.assembly import ComponentError
+
+    ov = ["+tracker.inference.refine._target_=torchmocap.filters.LocalInference"]
+    with pytest.raises(ComponentError, match="likelihood.terms.silhouette.*smooth"):
+        build_tracker(tracker_config("p_fidelity", ov), _runtime(walk))
+    with pytest.raises(ComponentError, match="smooth"):
+        build_tracker(tracker_config("l", ["likelihood@tracker.likelihood=image"]),
+                      _runtime(walk))
+    build_tracker(tracker_config("p_refined"), _runtime(walk))  # smooth: accepted
+
+
 def test_nested_choices_override_from_the_command_line(walk):
     tr = build_tracker(tracker_config("rs", ["proposal@tracker.proposal.base=manifold",
                                              "noise@tracker.proposal.base.noise=tangent"]),

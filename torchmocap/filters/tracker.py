@@ -103,6 +103,23 @@ def _check_component(obj, kind, name: str):
     return obj
 
 
+def _check_descent_energy(inference: Inference, likelihood: Likelihood) -> None:
+    """A gradient-descent stage (:class:`LocalInference`, alone or as a ``refine`` stage) needs
+    a differentiable energy: the 0/1 coverage test of a non-smooth silhouette term has no
+    gradient, so the descent would silently ignore it."""
+    from torchmocap.filters.inference import LocalInference
+    from torchmocap.likelihoods.silhouette import SilhouetteLikelihood
+
+    if not any(isinstance(m, LocalInference) for m in inference.modules()):
+        return
+    for name, m in likelihood.named_modules():
+        if isinstance(m, SilhouetteLikelihood) and not m.smooth:
+            where = f"likelihood.{name}" if name else "likelihood"
+            raise ValueError(f"{where}: a gradient-descent inference stage needs the smooth "
+                             "silhouette term (smooth: true, e.g. likelihood=smooth_image); "
+                             "the 0/1 coverage test has no gradient")
+
+
 class Tracker(nn.Module):
     """Tracks a skeleton through per-frame observations, assembled from components.
 
@@ -161,6 +178,7 @@ class Tracker(nn.Module):
         self.likelihood = _check_component(likelihood, Likelihood, "likelihood")
         self.inference = _check_component(inference, Inference, "inference")
         self.estimator = _check_component(estimator, Estimator, "estimator")
+        _check_descent_energy(self.inference, self.likelihood)
         self.manifold = manifold
         self.num_particles = num_particles
         self.seed = seed
