@@ -250,6 +250,50 @@ def rays_blocked_by_capsules(origins: Tensor, points: Tensor, endpoints: Tensor,
         return hit.any(-1)
 
 
+def _facing_half_distance(points: Tensor, endpoints: Tensor, r: Tensor, c: Tensor) -> Tensor:
+    """``(*, N, B)`` distance of every point to the camera-facing half of every capsule.
+
+    For the closest axis point ``s = a + t â`` (``t`` clamped to ``[0, L]``) and ``d = z − s``:
+    the nearest skin point faces the camera iff ``(c − s)·d ≥ r ‖d‖`` (then the distance is
+    ``|‖d‖ − r|``); otherwise it is the nearer rim point ``s ± r w``, ``w = â × (c − s) / ‖·‖``,
+    at ``sqrt(‖d‖² − 2 r |d·w| + r²)``. Since ``â × (c − s) = â × (c − a) =: q`` does not depend
+    on ``t`` and ``â·q = 0``, ``d·w = (z − a)·q / ‖q‖``; every term is a dot product of the
+    point with a per-capsule vector (``a``, ``â``, ``q``: one batched matmul) or a per-capsule
+    scalar, so no ``(*, N, B, 3)`` intermediate is formed. Coordinates are centred on the
+    capsules' mean against cancellation. ``r (*, 1, B)``, ``c (*, 3)``.
+    """
+    B = endpoints.shape[-3]
+    centre = endpoints.mean(dim=(-3, -2))  # (*, 3)
+    a = endpoints[..., 0, :] - centre[..., None, :]  # (*, B, 3)
+    ab = endpoints[..., 1, :] - endpoints[..., 0, :]
+    length = _safe_norm(ab)  # (*, B)
+    ax = ab / length[..., None]
+    z = points - centre[..., None, :]  # (*, N, 3)
+    cc = c - centre  # (*, 3)
+    q = torch.linalg.cross(ax, cc[..., None, :] - a)  # (*, B, 3)
+    qn = (q * q).sum(-1).sqrt()
+    degenerate = qn <= 1e-9  # camera on the axis line: w = the normal, so d.w = |d|
+    q = q / torch.where(degenerate, 1.0, qn)[..., None]
+    za, zu, zq = (z @ torch.cat([a, ax, q], -2).transpose(-1, -2)).split(B, -1)  # (*, N, B)
+    aa, au, aq = (a * a).sum(-1), (a * ax).sum(-1), (a * q).sum(-1)  # (*, B)
+    ac = (a * cc[..., None, :]).sum(-1)
+    cu = (cc[..., None, :] * ax).sum(-1) - au  # (c - a).â
+    zz = (z * z).sum(-1, keepdim=True)  # (*, N, 1)
+    zc = (z * cc[..., None, :]).sum(-1, keepdim=True)
+    u = zu - au[..., None, :]  # (z - a).â
+    t = torch.minimum(u.clamp_min(0.0), length[..., None, :])
+    zma = zz - 2 * za + aa[..., None, :]  # |z - a|^2
+    tt = t * (t - 2 * u)
+    d2 = (zma + tt).clamp_min(_EPS)  # |d|^2
+    dist = d2.sqrt()
+    # (c - s).d = (c - a).(z - a) - t (c - a).â - t u + t^2
+    toward = zc - ac[..., None, :] - za + aa[..., None, :] - t * cu[..., None, :] + tt + t * u
+    facing = toward >= r * dist
+    dw = torch.where(degenerate[..., None, :], dist, (zq - aq[..., None, :]).abs())
+    rim = (d2 - 2 * r * dw + r * r).clamp_min(_EPS).sqrt()
+    return torch.where(facing, (dist - r).abs(), rim)
+
+
 def capsule_distance(points: Tensor, endpoints: Tensor, radii: Tensor,
                      camera_center: Tensor | None = None, reduce: bool = True) -> Tensor:
     """Distance from points to a union of capsules (the skin).
@@ -287,24 +331,7 @@ def capsule_distance(points: Tensor, endpoints: Tensor, radii: Tensor,
     if camera_center is None:
         signed = segment_distance(points, endpoints) - r
         return signed.min(-1).values if reduce else signed
-    closest, _ = segment_closest_points(points, endpoints)
-    diff = points[..., :, None, :] - closest  # (*, N, B, 3)
-    dist_axis = _safe_norm(diff)
-    signed = dist_axis - r
-    c = camera_center.to(points.dtype)[..., None, None, :]  # (*, 1, 1, 3)
-    n = diff / dist_axis[..., None]
-    surf = closest + r[..., None] * n
-    facing = ((c - surf) * n).sum(-1) >= 0
-    axis = endpoints[..., None, :, 1, :] - endpoints[..., None, :, 0, :]
-    axis = axis / _safe_norm(axis)[..., None]
-    view = c - closest
-    w = torch.linalg.cross(axis.expand_as(view), view)
-    w_norm = _safe_norm(w)
-    # degenerate (camera on the axis line): any perpendicular will do — fall back to n
-    w = torch.where((w_norm > 1e-9)[..., None], w / w_norm[..., None], n)
-    rim_a = _safe_norm(diff - r[..., None] * w)
-    rim_b = _safe_norm(diff + r[..., None] * w)
-    front = torch.where(facing, signed.abs(), torch.minimum(rim_a, rim_b))
+    front = _facing_half_distance(points, endpoints, r, camera_center.to(points.dtype))
     return front.min(-1).values if reduce else front
 
 
