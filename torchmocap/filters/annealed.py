@@ -90,23 +90,39 @@ def rotation_mean_fn(
     group's ``from_matrix`` (reference: the highest-weight particle). Averaging angles directly
     fails at the ±π seam: yaws of +3.1 and −3.1 average to 0, the opposite direction.
     """
-    from torchmocap.filters.prediction import _as_groups
+    from torchmocap.filters.prediction import _as_groups, angles_from_matrix, euler_matrix
 
     groups = _as_groups(rotation_groups)
+    # Euler-type groups (``RotationGroup.from_axes``) are averaged and inverted in one batch
+    euler = [g for g in groups if g.axes is not None and g.from_matrix is None]
+    others = [g for g in groups if not (g.axes is not None and g.from_matrix is None)]
+    eidx = torch.tensor([g.indices for g in euler], dtype=torch.long).reshape(-1, 3)
+    eaxes = (torch.stack([g.axes for g in euler]) if euler
+             else torch.zeros(0, 3, 3, dtype=torch.float64))
+
+    def chordal(R: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        """``proj_SO(3)(sum_i w_i R_i)`` of ``R (P, ..., 3, 3)`` float64 → ``(..., 3, 3)``."""
+        w = weights.to(torch.float64).reshape(-1, *([1] * (R.dim() - 1)))
+        U, _, Vh = torch.linalg.svd((w * R).sum(0))
+        fix = torch.ones(*U.shape[:-1], dtype=R.dtype, device=R.device)
+        fix[..., 2] = torch.sign(torch.linalg.det(U @ Vh))
+        return (U * fix[..., None, :]) @ Vh
 
     def mean_fn(particles: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
         out = weighted_mean(particles, weights).clone()
         ref_i = int(torch.argmax(weights))
-        for g in groups:
+        if euler:
+            idx = eidx.to(particles.device)
+            ax = eaxes.to(particles.device)
+            R = euler_matrix(ax, particles[:, idx].to(torch.float64))  # (P, G, 3, 3)
+            vals = angles_from_matrix(lambda t: euler_matrix(ax, t), chordal(R, weights),
+                                      particles[ref_i, idx])
+            out[idx.reshape(-1)] = vals.reshape(-1).to(out.dtype)
+        for g in others:
             idx = list(g.indices)
             R = g.matrix(particles[:, idx]).to(torch.float64)
-            M = (weights.to(torch.float64)[:, None, None] * R).sum(0)
-            U, _, Vh = torch.linalg.svd(M)
-            fix = torch.ones(3, dtype=M.dtype, device=M.device)
-            fix[2] = torch.sign(torch.linalg.det(U @ Vh))
-            Rm = (U * fix) @ Vh
             ref = particles[ref_i, idx]
-            out[idx] = g.values(Rm.to(particles.dtype), ref).to(out.dtype)
+            out[idx] = g.values(chordal(R, weights).to(particles.dtype), ref).to(out.dtype)
         return out
 
     return mean_fn

@@ -32,7 +32,7 @@ Example:
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -46,6 +46,7 @@ __all__ = [
     "fit_ar3",
     "fit_rotation_increments",
     "angles_from_matrix",
+    "euler_matrix",
     "MODES",
 ]
 
@@ -121,6 +122,19 @@ def angles_from_matrix(
     return th.to(dtype)
 
 
+def euler_matrix(axes: torch.Tensor, angles: torch.Tensor) -> torch.Tensor:
+    """``rot(a1, t1) @ rot(a2, t2) @ rot(a3, t3)`` for unit ``axes (..., 3, 3)`` (rows, batch
+    dims broadcast against ``angles``) and ``angles (..., 3)`` → ``(..., 3, 3)``, in the
+    angles' dtype and device."""
+    a = axes.to(dtype=angles.dtype, device=angles.device)
+    batch = torch.broadcast_shapes(a.shape[:-2], angles.shape[:-1])
+    a = a.expand(*batch, 3, 3)
+    out = axis_angle_rotation(a[..., 0, :], angles[..., 0].expand(batch))
+    for j in (1, 2):
+        out = out @ axis_angle_rotation(a[..., j, :], angles[..., j].expand(batch))
+    return out
+
+
 @dataclass(frozen=True)
 class RotationGroup:
     """Three pose coordinates that together parameterise a rotation.
@@ -145,6 +159,7 @@ class RotationGroup:
     indices: tuple[int, int, int]
     to_matrix: ToMatrix | None = None
     from_matrix: FromMatrix | None = None
+    axes: torch.Tensor | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         idx = tuple(int(i) for i in self.indices)
@@ -168,13 +183,9 @@ class RotationGroup:
         ax = ax / ax.norm(dim=-1, keepdim=True)
 
         def to_matrix(t: torch.Tensor) -> torch.Tensor:
-            a = ax.to(dtype=t.dtype, device=t.device)
-            out = axis_angle_rotation(a[0].expand(*t.shape[:-1], 3), t[..., 0])
-            for j in (1, 2):
-                out = out @ axis_angle_rotation(a[j].expand(*t.shape[:-1], 3), t[..., j])
-            return out
+            return euler_matrix(ax, t)
 
-        return cls(tuple(indices), to_matrix=to_matrix)
+        return cls(tuple(indices), to_matrix=to_matrix, axes=ax)
 
     def matrix(self, x: torch.Tensor) -> torch.Tensor:
         """``(..., 3) -> (..., 3, 3)``."""
