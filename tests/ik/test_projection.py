@@ -4,6 +4,8 @@ module == function, errors."""
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 import scipy.optimize
@@ -290,6 +292,80 @@ class TestProjectToSkeleton:
                         diag = ref.diagonal()
                         torch.testing.assert_close(
                             dgn[k], diag.clamp_min(0.1 * float(diag.mean())), rtol=0, atol=1e-12)
+
+    def test_free_dofs_derivatives_are_the_submatrix(self):
+        # with a subset of free DoFs (two of the three translations, some rotations) the
+        # assembled model matrix and gradient are the full ones restricted to that subset
+        sk = human31().double()
+        gen = torch.Generator().manual_seed(17)
+        th = _poses(sk, 2, gen)
+        x = sk(th).positions + 0.05 * torch.randn(2, 21, 3, generator=gen, dtype=F64)
+        w = torch.rand(21, generator=gen, dtype=F64) + 0.5
+        free = [0, 2, 4, 7, 8, 12, 20, 21, 22, 30]
+        full = _Problem(sk, _plan(sk, F64, x.device), x, th, list(range(21)), w, 1e-2)
+        red = _Problem(sk, _plan(sk, F64, x.device), x, th, list(range(21)), w, 1e-2, free)
+        for newton in (False, True):
+            flag = torch.full((2,), newton)
+            p, axes = full.kinematics(th)
+            Hf, gf, df, _ = full.derivatives(p, axes, full.x, torch.zeros_like(th), flag)
+            p, axes = red.kinematics(th)
+            Hr, gr, dr, _ = red.derivatives(p, axes, red.x, torch.zeros(2, len(free),
+                                                                      dtype=F64), flag)
+            torch.testing.assert_close(Hr, Hf[:, free][:, :, free], rtol=0, atol=1e-12)
+            torch.testing.assert_close(gr, gf[:, free], rtol=0, atol=1e-12)
+
+    def test_free_dofs_solve_only_those(self, sk64):
+        # the frozen DoFs keep each problem's own warm start exactly; the free ones reach the
+        # minimum an independent bounded solver finds over them alone
+        gen = torch.Generator().manual_seed(18)
+        th = _poses(sk64, 3, gen)
+        start = sk64.clamp(th + 0.1 * torch.randn(th.shape, generator=gen, dtype=F64))
+        x = sk64(th).positions + 0.01 * torch.randn(3, 21, 3, generator=gen, dtype=F64)
+        upper = [sk64.dof_index(n) for n in sk64.dof_names
+                 if n.split("_")[0] in ("spine", "chest", "neck", "l", "r")
+                 and not any(k in n for k in ("hip", "knee", "ankle", "toe"))]
+        assert 8 < len(upper) < 25
+        mask = torch.zeros(31, dtype=torch.bool)
+        mask[upper] = True
+        lam = 1e-3
+        res = project_to_skeleton(sk64, x, start, free_dofs=mask, prior_weight=lam, tol=1e-10,
+                                  iterations=200)
+        frozen = ~mask
+        assert torch.equal(res.theta[:, frozen], start[:, frozen])
+        lo, hi = sk64.lower.double()[upper].numpy(), sk64.upper.double()[upper].numpy()
+        for n in range(3):
+            def fun(v, n=n):
+                t = start[n].clone()
+                t[upper] = torch.from_numpy(v)
+                return torch.cat([(sk64(t).positions - x[n]).reshape(-1),
+                                  lam * (t[upper] - start[n, upper])]).numpy()
+
+            sol = scipy.optimize.least_squares(fun, start[n, upper].numpy(), bounds=(lo, hi),
+                                               method="trf", xtol=1e-14, ftol=1e-14, gtol=1e-12)
+            assert abs(2 * sol.cost - float(res.cost[n])) < 1e-8 * max(1.0, 2 * sol.cost)
+        # the same as freezing them by zero-width limits in the full solve
+        pinned = copy.deepcopy(sk64)
+        one = start[:1].expand(3, -1)
+        pinned.lower[frozen] = one[0, frozen]
+        pinned.upper[frozen] = one[0, frozen]
+        a = project_to_skeleton(pinned, x, one, prior_weight=lam, tol=1e-10, iterations=200)
+        b = project_to_skeleton(sk64, x, one, free_dofs=upper, prior_weight=lam, tol=1e-10,
+                                iterations=200)
+        torch.testing.assert_close(b.theta, a.theta, rtol=0, atol=1e-6)
+        # translations alone
+        t = project_to_skeleton(sk64, x, start, free_dofs=[0, 1, 2], tol=1e-10, iterations=50)
+        shift = (x - sk64(start).positions).mean(1)
+        torch.testing.assert_close(t.theta[:, :3], start[:, :3] + shift, rtol=0, atol=1e-6)
+        with pytest.raises(ValueError, match="free_dofs: indices must lie in"):
+            project_to_skeleton(sk64, x, start, free_dofs=[0, 31])
+        with pytest.raises(ValueError, match="free_dofs: duplicate"):
+            project_to_skeleton(sk64, x, start, free_dofs=[3, 3])
+        with pytest.raises(ValueError, match=r"free_dofs: expected a bool mask of shape \(31,\)"):
+            project_to_skeleton(sk64, x, start, free_dofs=mask[:5])
+        with pytest.raises(ValueError, match="free_dofs: expected at least one"):
+            project_to_skeleton(sk64, x, start, free_dofs=[])
+        with pytest.raises(ValueError, match="free_dofs: expected DoF indices"):
+            project_to_skeleton(sk64, x, start, free_dofs=["neck"])
 
     def test_module(self, sk64):
         th, x, start = _problem(sk64, 20, 16)

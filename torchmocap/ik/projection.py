@@ -243,17 +243,32 @@ class _Problem:
     """Constants of one batched projection (targets, weights, limits, index maps).
 
     Layout: joint positions, residuals and world axes are ``(k, 3, n)`` with the ``n`` problems
-    innermost; poses, gradients and Hessians are ``(n, D)`` / ``(n, D, D)``.
+    innermost; poses, gradients and Hessians are ``(n, D)`` / ``(n, D, D)`` over the ``D`` free
+    DoFs (all of the skeleton's by default; the others stay at the warm start and never enter
+    the linear algebra).
     """
 
-    def __init__(self, sk, plan, targets, theta0, joints, joint_weights, prior_weight):
+    def __init__(self, sk, plan, targets, theta0, joints, joint_weights, prior_weight,
+                 free=None):
         dtype, device = targets.dtype, targets.device
         P, M, _ = targets.shape
         self.plan, self.P, self.M = plan, P, M
-        self.D, self.nt, self.Dr = sk.num_dofs, plan.num_trans, plan.rot_slot.numel()
-        self.lo = sk.lower.to(dtype=dtype, device=device)
-        self.hi = sk.upper.to(dtype=dtype, device=device)
-        self.theta0 = torch.minimum(torch.maximum(theta0.expand(P, self.D), self.lo), self.hi)
+        nt_all, D_all = plan.num_trans, sk.num_dofs
+        lo = sk.lower.to(dtype=dtype, device=device)
+        hi = sk.upper.to(dtype=dtype, device=device)
+        self.theta0_full = torch.minimum(torch.maximum(theta0.expand(P, D_all), lo), hi)
+        fr = list(range(D_all)) if free is None else sorted(int(d) for d in free)
+        self.reduced = len(fr) < D_all
+        self.free = torch.tensor(fr, dtype=torch.long, device=device)
+        ft = [d for d in fr if d < nt_all]  # free translations
+        fr_rot = torch.tensor([d - nt_all for d in fr if d >= nt_all], dtype=torch.long,
+                              device=device)  # free rotations, as rows of the plan's rot list
+        self.D, self.nt, self.Dr = len(fr), len(ft), fr_rot.numel()
+        self.lo, self.hi = lo[self.free], hi[self.free]
+        self.theta0 = self.theta0_full[:, self.free]
+        self.after = plan.after[self.free][:, self.free]
+        self.rot_slot = plan.rot_slot[fr_rot]
+        self.frame_wv = torch.cat([plan.frame_art[plan.rot_art[fr_rot]], plan.frame_all])
         self.lam2 = float(prior_weight) ** 2
         sel = torch.tensor(joints, dtype=torch.long, device=device)
         self.w = joint_weights  # (M,) weights of the squared distances
@@ -261,13 +276,20 @@ class _Problem:
         self.chain_out = torch.cat([plan.chain[sel], plan.chain[plan.art_joints]], 0)
         self.off3 = (plan.fold @ sk.offsets.to(dtype=dtype, device=device))[:, :, None]
         self.x = targets.permute(1, 2, 0).contiguous()  # (M, 3, P)
-        self.origin = M + plan.rot_art  # rows of the position block holding each DoF origin
-        mask = plan.desc[:, sel] * joint_weights  # (Dr, M): weighted strict-descendant mask
+        # rows of the position block holding each free rotation DoF's origin
+        self.origin = M + plan.rot_art[fr_rot]
+        mask = plan.desc[fr_rot][:, sel] * joint_weights  # (Dr, M): weighted descendant mask
         self.moment_mask = torch.cat([joint_weights[None], mask], 0)  # row 0: all joints
         self.mass = mask.sum(1)[:, None, None]  # (Dr, 1, 1)
         # translations enter the (D, 6) x (6, D) product as rows left = (0, e_c),
         # right = (0, m e_c) with m = sum w_i: H_tt = m I, H_te = k_e
-        self.right_t = plan.left_t * joint_weights.sum()
+        self.trans = torch.tensor(ft, dtype=torch.long, device=device)
+        self.left_t = plan.left_t[self.trans]
+        self.right_t = self.left_t * joint_weights.sum()
+
+    def full(self, theta: torch.Tensor, base: torch.Tensor) -> torch.Tensor:
+        """The skeleton's pose ``(n, D_all)``: ``base`` with the free DoFs set to ``theta``."""
+        return base.index_copy(1, self.free, theta) if self.reduced else theta
 
     # -- kinematics -----------------------------------------------------------------------
     def kinematics(self, theta: torch.Tensor):
@@ -288,11 +310,11 @@ class _Problem:
             Rg[s0 + 1:s1 + 1] = _mm(Rg.index_select(0, par), L[s0:s1])
         # world axes of the DoFs, w = R_parent u, and rotated folded offsets, v = R_frame off,
         # as one product: (Dr + J) rotations times (Dr + J) vectors
-        vec = torch.cat([loc[:, 9:].reshape(pl.num_art * 3, 3, n).index_select(0, pl.rot_slot),
+        vec = torch.cat([loc[:, 9:].reshape(pl.num_art * 3, 3, n).index_select(0, self.rot_slot),
                          self.off3.expand(-1, -1, n)], 0)
-        wv = (Rg.index_select(0, pl.frame_wv) * vec[:, None]).sum(2)  # (Dr + J, 3, n)
+        wv = (Rg.index_select(0, self.frame_wv) * vec[:, None]).sum(2)  # (Dr + J, 3, n)
         w, v = wv[: self.Dr], wv[self.Dr:]
-        if self.nt:
+        if pl.num_trans:
             v[0] += thT[:3]
         p = (self.chain_out @ v.reshape(v.shape[0], -1)).view(-1, 3, n)
         return p, w
@@ -361,7 +383,7 @@ class _Problem:
         # the Gauss-Newton diagonal (positive) scales the damping
         dgn = torch.empty(D, n, dtype=dt, device=p.device)
         if nt:
-            dgn[:nt] = self.right_t[:, 3:, 0].diagonal()[:, None]
+            dgn[:nt] = self.w.sum()
         dgn[nt:] = (w * A2[:, 0] - z * k).sum(1)
         # SoA operands (rows: translations, then rotations) and one transposing copy each
         # (contiguous operands: strided ones make bmm loop over the batch); the right operand
@@ -373,7 +395,7 @@ class _Problem:
         lb = torch.empty(D, 6, n, dtype=dt, device=p.device)
         rb = torch.empty(nv, D, 6, n, dtype=dt, device=p.device)
         if nt:
-            lb[:nt] = pl.left_t
+            lb[:nt] = self.left_t
             rb[:, :nt] = self.right_t
         lb[nt:, :3] = w
         torch.neg(z, out=lb[nt:, 3:])
@@ -387,11 +409,11 @@ class _Problem:
         # lower triangle (d below e) is U^T = right @ left^T, masked
         U = torch.bmm(rb.view(nv * D, 6, n).permute(2, 0, 1).contiguous(),
                       lb.permute(2, 1, 0).contiguous())  # (n, nv D, D)
-        H = U[:, :D] * pl.after
-        HG = U[:, D:] * pl.after if with_gn else None
+        H = U[:, :D] * self.after
+        HG = U[:, D:] * self.after if with_gn else None
         g = torch.empty(D, n, dtype=dt, device=p.device)
         if nt:
-            torch.sub(mom[0, 0:3], mom[0, 3:6], out=g[:nt])
+            g[:nt] = (mom[0, 0:3] - mom[0, 3:6]).index_select(0, self.trans)
         g[nt:] = ge
         g = g.t()
         dgn = dgn.t()
@@ -479,6 +501,29 @@ def _box_step(H, g, th, lo, hi, damp):
 
 
 # ----------------------------------------------------------------------------- validation
+def _resolve_free(D: int, free_dofs) -> list[int] | None:
+    if free_dofs is None:
+        return None
+    if isinstance(free_dofs, torch.Tensor) and free_dofs.dtype == torch.bool:
+        if free_dofs.shape != (D,):
+            raise ValueError(f"free_dofs: expected a bool mask of shape ({D},), got "
+                             f"{tuple(free_dofs.shape)}")
+        out = free_dofs.nonzero().flatten().tolist()
+    else:
+        items = free_dofs.tolist() if isinstance(free_dofs, torch.Tensor) else free_dofs
+        if isinstance(items, (int, str)) or not isinstance(items, Sequence) or any(
+                isinstance(d, bool) or not isinstance(d, int) for d in items):
+            raise ValueError(f"free_dofs: expected DoF indices or a bool mask, got {free_dofs!r}")
+        out = list(items)
+        if any(not 0 <= d < D for d in out):
+            raise ValueError(f"free_dofs: indices must lie in [0, {D}), got {out}")
+        if len(set(out)) != len(out):
+            raise ValueError(f"free_dofs: duplicate indices in {out}")
+    if not out:
+        raise ValueError("free_dofs: expected at least one free DoF")
+    return out
+
+
 def _resolve_joints(sk: Skeleton, joints) -> list[int]:
     if joints is None:
         return list(range(sk.num_joints))
@@ -560,6 +605,7 @@ def project_to_skeleton(
     tol: float = 1e-4,
     damping: float = 1e-3,
     return_trace: bool = False,
+    free_dofs: Sequence[int] | torch.Tensor | None = None,
 ) -> ProjectionResult:
     """Project joint positions onto the skeleton: ``argmin |x - F(theta)|^2`` within the limits.
 
@@ -593,6 +639,10 @@ def project_to_skeleton(
             ~1e-9 for exact round trips.
         damping: initial Marquardt damping (relative to the diagonal of ``J^T J``).
         return_trace: also return the cost after every iteration (``cost_trace``).
+        free_dofs: optional DoF indices (or a ``(D,)`` bool mask) to solve for; the others stay
+            at ``theta0`` (clamped into the limits) and never enter the linear algebra — e.g.
+            the upper body's 20-odd DoFs of a 31-DoF skeleton, for a fraction of the cost.
+            Default: all DoFs.
 
     Returns:
         :class:`ProjectionResult` with ``theta (P, D)``, ``residual (P, M)`` (metres),
@@ -620,6 +670,7 @@ def project_to_skeleton(
     sel = _resolve_joints(skeleton, joints) if isinstance(skeleton, Skeleton) else []
     _check_inputs(skeleton, targets, theta0, sel, joint_weights, float(prior_weight), iterations,
                   float(tol), float(damping))
+    free = _resolve_free(skeleton.num_dofs, free_dofs)
     dtype = torch.promote_types(targets.dtype, theta0.dtype)
     if not dtype.is_floating_point:
         dtype = torch.get_default_dtype()
@@ -631,7 +682,7 @@ def project_to_skeleton(
          else joint_weights.detach().to(dtype=dtype, device=device))
     with torch.no_grad():
         prob = _Problem(skeleton, _plan(skeleton, dtype, device), targets, theta0, sel, w,
-                        prior_weight)
+                        prior_weight, free)
         return _solve(prob, targets, iterations, float(tol), float(damping), return_trace)
 
 
@@ -645,8 +696,9 @@ def _solve(prob: _Problem, targets, iterations, tol, damping, return_trace) -> P
     # SoA tensors (positions, residuals, targets) carry the problems in their last dimension.
     th = prob.theta0.clone()
     th0 = prob.theta0
+    base = prob.theta0_full  # the fixed DoFs' values (all of them, per problem)
     x = prob.x
-    p, w = prob.kinematics(th)
+    p, w = prob.kinematics(prob.full(th, base))
     res = p[:M] - x
     zero = torch.zeros_like(th)
     cost = prob.cost(res, zero)
@@ -659,7 +711,7 @@ def _solve(prob: _Problem, targets, iterations, tol, damping, return_trace) -> P
     nu = torch.full((P,), 2.0, dtype=dtype, device=device)
     ids = torch.arange(P, device=device)
 
-    out_theta = th.clone()
+    out_theta = base.clone()
     out_res = res.clone()
     out_cost = cost.clone()
     out_conv = torch.zeros(P, dtype=torch.bool, device=device)
@@ -684,7 +736,7 @@ def _solve(prob: _Problem, targets, iterations, tol, damping, return_trace) -> P
         pred = (d * (H.diagonal(dim1=1, dim2=2) * d - 2 * (g + Hdd))).sum(1)
 
         # --- evaluate the candidate; cost change from residual differences (no cancellation)
-        p_c, w_c = prob.kinematics(cand)
+        p_c, w_c = prob.kinematics(prob.full(cand, base))
         res_c = p_c[:M] - x
         dp = res_c - res
         dcost = wts @ (dp * (res_c + res)).sum(1)
@@ -716,13 +768,15 @@ def _solve(prob: _Problem, targets, iterations, tol, damping, return_trace) -> P
         if last or n_fin >= max(16, ids.numel() // 8):
             done = fin if not last else torch.ones_like(fin)
             sel = ids[done]
-            out_theta[sel], out_cost[sel], out_conv[sel] = th[done], cost[done], conv[done]
+            out_theta[sel] = prob.full(th[done], base[done])
+            out_cost[sel], out_conv[sel] = cost[done], conv[done]
             out_res[..., sel] = res[..., done]
             if last:
                 break
             keep = ~done
-            ids, th, th0, cost, H, g, dgn, mu, nu, acc, near, fin, conv = (
-                t[keep] for t in (ids, th, th0, cost, H, g, dgn, mu, nu, acc, near, fin, conv))
+            ids, th, th0, base, cost, H, g, dgn, mu, nu, acc, near, fin, conv = (
+                t[keep] for t in (ids, th, th0, base, cost, H, g, dgn, mu, nu, acc, near, fin,
+                                  conv))
             HG = None if HG is None else HG[keep]
             x, res, p_c, w_c = (t[..., keep] for t in (x, res, p_c, w_c))
         # derivatives at the accepted candidates only; the rejected keep theirs
@@ -760,7 +814,7 @@ class SkeletonProjection(nn.Module):
 
     Args:
         skeleton: the kinematic model (a submodule: ``.to()`` moves and casts it).
-        joints, joint_weights, prior_weight, iterations, tol, damping: as in
+        joints, joint_weights, prior_weight, iterations, tol, damping, free_dofs: as in
             :func:`project_to_skeleton` (``joint_weights`` is kept as a buffer).
 
     Example:
@@ -781,10 +835,12 @@ class SkeletonProjection(nn.Module):
         iterations: int = 50,
         tol: float = 1e-4,
         damping: float = 1e-3,
+        free_dofs: Sequence[int] | torch.Tensor | None = None,
     ):
         super().__init__()
         self.skeleton = skeleton
         self.joints = _resolve_joints(skeleton, joints)
+        self.free_dofs = _resolve_free(skeleton.num_dofs, free_dofs)
         self.register_buffer("joint_weights", None if joint_weights is None
                              else joint_weights.detach().clone())
         self.prior_weight = float(prior_weight)
@@ -798,7 +854,7 @@ class SkeletonProjection(nn.Module):
         return project_to_skeleton(
             self.skeleton, targets, theta0, joints=self.joints, joint_weights=self.joint_weights,
             prior_weight=self.prior_weight, iterations=self.iterations, tol=self.tol,
-            damping=self.damping, return_trace=return_trace,
+            damping=self.damping, return_trace=return_trace, free_dofs=self.free_dofs,
         )
 
     def extra_repr(self) -> str:

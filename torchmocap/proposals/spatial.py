@@ -24,7 +24,6 @@ the exact factor is a constant). Shapes: ``P`` particles, ``L`` tracked joints, 
 
 from __future__ import annotations
 
-import copy
 import math
 import time
 from collections.abc import Mapping, Sequence
@@ -228,11 +227,6 @@ class SpatialPriorProposal(Proposal):
         if any(not (math.isfinite(s) and s > 0) for s in stds):
             raise ValueError(f"position_std: expected stds > 0 (metres), got {position_std!r}")
         self.register_buffer("std", torch.tensor(stds))
-        # the projection's skeleton: a copy whose frozen DoFs get zero-width limits per call
-        self._proj_skeleton = copy.deepcopy(skeleton)
-        frozen = torch.ones(self.num_dofs, dtype=torch.bool)
-        frozen[self.free] = False
-        self.register_buffer("frozen", frozen)
         self._states: dict = {}
 
     @property
@@ -294,21 +288,14 @@ class SpatialPriorProposal(Proposal):
                 bad[idx[good, 0], idx[good, 1]] = False
             stats["failed_joints"] = int(bad.sum())
             stats["joint_tries"] = float(tries.float().mean())
-        # project onto the manifold; frozen DoFs pinned at the ancestors' values
-        psk = self._proj_skeleton
-        fr = self.frozen.to(base.device)
-        lo, hi = sk.lower.to(base).clone(), sk.upper.to(base).clone()
-        pin = base[0]
-        if bool(fr.any()) and not bool(torch.allclose(base[:, fr], pin[fr].expand(P, -1))):
-            raise ValueError("context.previous: the frozen (untracked) DoFs differ between "
-                             "particles; a spatial proposal keeps them fixed")
-        lo[fr], hi[fr] = pin[fr], pin[fr]
-        psk.lower.copy_(lo.to(psk.lower))
-        psk.upper.copy_(hi.to(psk.upper))
-        res = project_to_skeleton(psk, x, base, joints=self.joint_index.tolist(),
+        # project onto the manifold over the tracked DoFs only; the others keep each
+        # ancestor's values
+        res = project_to_skeleton(sk, x, base, joints=self.joint_index.tolist(),
                                   prior_weight=self.prior_weight, iterations=self.iterations,
-                                  tol=self.tol)
+                                  tol=self.tol, free_dofs=self.free.tolist())
         theta = res.theta.to(base.dtype)
+        fr = torch.ones(self.num_dofs, dtype=torch.bool, device=base.device)
+        fr[self.free.to(base.device)] = False
         theta[:, fr] = base[:, fr]
         stats["projection_residual_mm"] = float(res.residual.mean()) * 1000
         stats["seconds"] = time.perf_counter() - t0
