@@ -352,6 +352,7 @@ def anneal(
     mean_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
     generator: torch.Generator | None = None,
     callback: Callable[[int, torch.Tensor, torch.Tensor, torch.Tensor], None] | None = None,
+    log_prior: Callable[[torch.Tensor], torch.Tensor] | None = None,
 ) -> AnnealingResult:
     """Annealed particle optimisation of ``energy`` from the initial set ``particles``.
 
@@ -375,6 +376,9 @@ def anneal(
             average decoded poses (eq. 18) or rotations differently, pass your own.
         generator: the only source of randomness.
         callback: called as ``callback(layer, particles, energies, log_weights)`` per layer.
+        log_prior: optional ``log p(y) (P,)`` (up to a constant) added to every layer's
+            log-weights untempered: layer ``k`` targets ``exp(−β_k V(y)) p(y)``. ``β`` is still
+            chosen from the energies alone (the schedule sees ``V``).
     Returns:
         :class:`AnnealingResult` with per-layer diagnostics of length ``K``.
     """
@@ -421,6 +425,12 @@ def anneal(
         if beta.numel() != 1 or not bool(beta >= 0) or bool(torch.isnan(beta)):
             raise ValueError(f"schedule: returned an invalid beta {beta} at layer {k}")
         lw = annealing_log_weights(v.to(torch.float64), beta.reshape(()).to(x.device))
+        if log_prior is not None:
+            with torch.no_grad():
+                lp = log_prior(x if decode is None else decode(x))
+            if lp.shape != (p,) or bool(torch.isnan(lp).any()):
+                raise ValueError(f"log_prior: expected ({p},) values, not NaN")
+            lw = lw + lp.to(lw)
         log_w = (lw - torch.logsumexp(lw, 0)).to(x.dtype)
         finite = torch.isfinite(v)
         betas[k] = beta.reshape(())

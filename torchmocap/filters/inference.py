@@ -39,6 +39,7 @@ from torchmocap.filters.annealed import anneal
 from torchmocap.filters.annealing import get_schedule
 from torchmocap.filters.local import minimise_local
 from torchmocap.filters.resampling import get_resampler
+from torchmocap.filters.temporal_prior import TemporalPrior, temporal_prior_precision
 from torchmocap.proposals.base import ProposalContext
 
 __all__ = [
@@ -193,6 +194,14 @@ class AnnealedInference(Inference):
             "Optimization and filtering for human motion capture", IJCV 2010). Its result is
             the estimate; the particles and weights carried to the next frame stay the
             annealer's. The energy must then be differentiable (a smooth likelihood).
+        prior_std_deg: optional Gaussian temporal prior about the prediction: every layer's
+            weights are multiplied by ``exp(−½ Σ (wrap(θ − θ̂) / σ)²)`` — not tempered by β —
+            with ``σ`` = this angle on every rotation DoF and ``prior_translation_std`` metres on
+            the root translation (:class:`~torchmocap.filters.temporal_prior.TemporalPrior`).
+            None: off (the paper's weights). ``refine`` descends the energy alone.
+        prior_translation_std: see ``prior_std_deg``.
+        skeleton: the tracking model (runtime; which DoFs are translations), needed with
+            ``prior_std_deg``.
     """
 
     PROPAGATE = ("prediction", "particles")
@@ -200,8 +209,22 @@ class AnnealedInference(Inference):
     def __init__(self, layers: int = 15, schedule="ess", selection="multinomial",
                  diffusion=None, rounds: int = 1, round_scale: float = 0.5,
                  propagate: str = "prediction", motion_scale: float = 0.0,
-                 refine: Inference | None = None) -> None:
+                 refine: Inference | None = None, prior_std_deg: float | None = None,
+                 prior_translation_std: float = 0.1, skeleton=None) -> None:
         super().__init__()
+        self.prior_std_deg = prior_std_deg
+        prec = rot = None
+        if prior_std_deg is not None:
+            if skeleton is None:
+                raise ValueError("skeleton: required with prior_std_deg (which DoFs are "
+                                 "translations)")
+            prec = temporal_prior_precision(skeleton.num_dofs, skeleton.translation_dofs,
+                                            prior_std_deg, prior_translation_std,
+                                            dtype=torch.float64)
+            rot = torch.ones(skeleton.num_dofs, dtype=torch.bool)
+            rot[list(skeleton.translation_dofs)] = False
+        self.register_buffer("_prior_precision", prec)
+        self.register_buffer("_prior_rotation", rot)
         if refine is not None and not isinstance(refine, Inference):
             raise TypeError(f"refine: expected an Inference module (e.g. LocalInference) or "
                             f"None, got {type(refine).__name__}")
@@ -247,7 +270,8 @@ class AnnealedInference(Inference):
                                           log_weights=context.extras.get("log_weights"))
         return ctx
 
-    def _one_round(self, energy, proposal, estimator, context, num, generator, start=None):
+    def _one_round(self, energy, proposal, estimator, context, num, generator, start=None,
+                   prior=None):
         stats: list[dict] = []
 
         def diffuse(x, step, g):
@@ -261,12 +285,16 @@ class AnnealedInference(Inference):
         stats.append(first.stats)
         res = anneal(energy, first.particles, layers=self.layers, schedule=self.schedule,
                      selection=self.selection, diffusion=diffuse, boundary="clamp",
-                     mean_fn=lambda x, w: estimator(x, w, context), generator=generator)
+                     mean_fn=lambda x, w: estimator(x, w, context), generator=generator,
+                     log_prior=None if prior is None else (lambda x: -prior(x)))
         return res, stats
 
     def forward(self, energy, proposal, estimator, context, num: int,
                 generator: torch.Generator | None = None) -> InferenceResult:
         t0 = time.perf_counter()
+        prior = None
+        if self._prior_precision is not None and context.previous.dim() == 1:
+            prior = TemporalPrior(context.previous, self._prior_precision, self._prior_rotation)
         best = None
         info: dict[str, Any] = {"beta": [], "ess": [], "min_energy": []}
         all_stats: list[dict] = []
@@ -277,7 +305,7 @@ class AnnealedInference(Inference):
                                           scale=context.scale * self.round_scale**r)
             start = self._start(proposal, ctx) if r == 0 else None
             res, stats = self._one_round(energy, proposal, estimator, ctx, num, generator,
-                                         start)
+                                         start, prior)
             all_stats += stats
             info["beta"] += [float(b) for b in res.beta]
             info["ess"] += [float(e) for e in res.ess]
@@ -312,7 +340,8 @@ class AnnealedInference(Inference):
         return (f"layers={self.layers}, schedule={self.schedule!r}, "
                 f"selection={self.selection!r}, diffusion={self.diffusion!r}, "
                 f"rounds={self.rounds}, propagate={self.propagate!r}, "
-                f"motion_scale={self.motion_scale}, refine={self.refine is not None}")
+                f"motion_scale={self.motion_scale}, refine={self.refine is not None}, "
+                f"prior_std_deg={self.prior_std_deg}")
 
 
 class LocalInference(Inference):

@@ -62,6 +62,7 @@ from torchmocap.distributions.covariance_scaled import (
 )
 from torchmocap.filters.inference import Inference, InferenceResult
 from torchmocap.filters.local import minimise_local
+from torchmocap.filters.temporal_prior import temporal_prior_precision
 from torchmocap.likelihoods.base import Poses, WeightedSum
 
 __all__ = [
@@ -500,12 +501,9 @@ class MixtureInference(Inference):
     def _prior_precision(self, like: torch.Tensor) -> torch.Tensor | None:
         if self.prior_std_deg is None:
             return None
-        D = like.shape[-1]
-        s = torch.full((D,), math.radians(self.prior_std_deg), dtype=like.dtype,
-                       device=like.device)
-        if self._translation_dofs:
-            s[self._translation_dofs] = self.prior_translation_std
-        return 1.0 / (s * s)
+        return temporal_prior_precision(like.shape[-1], self._translation_dofs,
+                                        self.prior_std_deg, self.prior_translation_std,
+                                        dtype=like.dtype, device=like.device)
 
     def _derivs_fn(self, energy, anchors: torch.Tensor | None, prec: torch.Tensor | None):
         """``x -> (V_total, grad, H, V_likelihood)`` for rows aligned with ``anchors``."""
