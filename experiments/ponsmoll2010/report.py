@@ -26,12 +26,14 @@ RESULTS = HERE / "results"
 
 ACTIVITIES = {"walking": "walking", "jumping": "jumping", "kicking": "kicking",
               "basketball": "basketball", "dancing": "dancing", "arm_rotation": "arm rotation"}
-METHODS = ["l", "ls", "g", "gs", "rs", "p", "p_fidelity"]
+METHODS = ["l", "ls", "g", "gs", "rs", "p", "p_fidelity", "p_prior"]
 PAPER_FIG8 = {"p": "**10.78 ± 8.5**", "gs": "not in Fig. 8", "g": "above P (GL)",
-              "rs": "not in Fig. 8", "ls": "above P", "l": "above P", "p_fidelity": "–"}
+              "rs": "not in Fig. 8", "ls": "above P", "l": "above P", "p_fidelity": "–",
+              "p_prior": "–"}
 SEEDS = [0, 1, 2]
 #: column labels
-NAMES = {**{m: m.upper() for m in METHODS}, "p_fidelity": "P, fidelity options"}
+NAMES = {**{m: m.upper() for m in METHODS}, "p_fidelity": "P, fidelity options",
+         "p_prior": "P, fidelity + temporal prior"}
 
 
 def load(figure: str, *parts: str) -> dict | None:
@@ -131,7 +133,7 @@ def fig8() -> str:
     ax.set_ylabel("validation error (deg)")
     ax.axhline(10.78, color="k", ls=":", lw=1, label="paper P")
     ax.set_title("bars: seed spread", fontsize=8)
-    ax.legend(fontsize=7, ncol=7)
+    ax.legend(fontsize=7, ncol=4)
     fig.tight_layout()
     fig.savefig(RESULTS / "fig8.png", dpi=110)
     plt.close(fig)
@@ -223,7 +225,7 @@ def control() -> str:
 
 #: the fidelity ablation's variants, cumulative, in the order they are reported
 VARIANTS = ["baseline", "eq18", "propagate", "motion", "floor", "limits", "body", "alpha",
-            "occlusion_vmf", "exact_sensors", "occlusion"]
+            "occlusion_vmf", "prior", "exact_sensors", "occlusion"]
 
 
 def fidelity() -> str:

@@ -121,7 +121,7 @@ def test_p_beats_g_and_doing_nothing(walk):
 
 
 @pytest.mark.parametrize("preset", ["gs", "rs", "l", "ls", "p", "p_gaussian", "p_nonoise",
-                                    "p_fidelity", "p_refined"])
+                                    "p_fidelity", "p_refined", "p_prior"])
 def test_presets_track_a_few_frames(walk, preset):
     ov = [] if preset in ("l", "ls") else ["tracker.num_particles=60",
                                           "tracker.inference.layers=6"]
@@ -133,7 +133,7 @@ def test_presets_track_a_few_frames(walk, preset):
 def test_presets_are_compositions_of_the_documented_components():
     cfgs = {p: tracker_config(p) for p in ("p", "p_gaussian", "p_nonoise", "g", "gs", "rs",
                                              "l", "ls", "real_frame", "p_fidelity",
-                                             "p_refined")}
+                                             "p_refined", "p_prior")}
     assert cfgs["p"].proposal._target_ == "torchmocap.proposals.ManifoldProposal"
     assert cfgs["p"].proposal.noise._target_ == "torchmocap.proposals.VonMisesFisherNoise"
     assert cfgs["p_gaussian"].proposal.noise._target_.endswith("PassiveGaussianNoise")
@@ -158,6 +158,11 @@ def test_presets_are_compositions_of_the_documented_components():
     assert ref.likelihood.terms.silhouette.smooth is True
     assert ref.likelihood.terms.appearance.occlusion == "outlier"
     assert ref.inference.propagate == "particles" and ref.inference.schedule.alpha == 0.1
+    pri = cfgs["p_prior"]  # p_fidelity + the temporal prior in the annealer's weights
+    assert p.inference.prior_std_deg is None and fid.inference.prior_std_deg is None
+    assert (pri.inference.prior_std_deg, pri.inference.prior_translation_std) == (40.0, 0.1)
+    for key in ("proposal", "likelihood", "estimator", "predictor"):
+        assert pri[key] == fid[key]
     for name, c in cfgs.items():
         assert c.name == name
 
