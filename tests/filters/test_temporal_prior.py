@@ -90,3 +90,24 @@ def test_annealed_inference_prior_keeps_the_predicted_mode():
     assert "prior_std_deg=40" in repr(prior)
     with pytest.raises(ValueError, match="skeleton: required with prior_std_deg"):
         AnnealedInference(prior_std_deg=20.0)
+
+
+def test_prior_mean_last_estimate_centres_on_the_previous_estimate():
+    """The same energy with the prediction on the -1 side and the previous estimate on the +1
+    side: the prior follows whichever ``prior_mean`` names."""
+    sk = SimpleNamespace(num_dofs=2, translation_dofs=[])
+    prop = GaussianDiffusionProposal(torch.full((2,), 1.0))
+    ctx = ProposalContext(torch.tensor([-0.3, 0.0], dtype=F64))
+    ctx.extras["last_estimate"] = torch.tensor([0.3, 0.0], dtype=F64)
+    on_pred = AnnealedInference(layers=8, prior_std_deg=math.degrees(0.7), skeleton=sk)
+    on_last = AnnealedInference(layers=8, prior_std_deg=math.degrees(0.7), skeleton=sk,
+                                prior_mean="last_estimate")
+    for seed in range(3):
+        a = on_pred(_bimodal, prop, WeightedMeanEstimator(), ctx, 300,
+                    torch.Generator().manual_seed(seed))
+        b = on_last(_bimodal, prop, WeightedMeanEstimator(), ctx, 300,
+                    torch.Generator().manual_seed(seed))
+        assert -1.1 < float(a.estimate[0]) < -0.9
+        assert 0.9 < float(b.estimate[0]) < 1.1
+    with pytest.raises(ValueError, match="prior_mean"):
+        AnnealedInference(prior_mean="mode")

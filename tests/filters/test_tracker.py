@@ -160,7 +160,8 @@ def test_presets_are_compositions_of_the_documented_components():
     assert ref.inference.propagate == "particles" and ref.inference.schedule.alpha == 0.1
     pri = cfgs["p_prior"]  # p_fidelity + the temporal prior in the annealer's weights
     assert p.inference.prior_std_deg is None and fid.inference.prior_std_deg is None
-    assert (pri.inference.prior_std_deg, pri.inference.prior_translation_std) == (40.0, 0.1)
+    assert (pri.inference.prior_std_deg, pri.inference.prior_translation_std,
+            pri.inference.prior_mean) == (40.0, 0.1, "last_estimate")
     for key in ("proposal", "likelihood", "estimator", "predictor"):
         assert pri[key] == fid[key]
     for name, c in cfgs.items():

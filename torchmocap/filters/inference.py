@@ -200,6 +200,9 @@ class AnnealedInference(Inference):
             the root translation (:class:`~torchmocap.filters.temporal_prior.TemporalPrior`).
             None: off (the paper's weights). ``refine`` descends the energy alone.
         prior_translation_std: see ``prior_std_deg``.
+        prior_mean: ``"prediction"`` (the AR prediction, the dynamics' own mean) or
+            ``"last_estimate"`` (the previous frame's estimate: no momentum, so an estimate held
+            near the prior cannot feed the AR extrapolation that centres the next one).
         skeleton: the tracking model (runtime; which DoFs are translations), needed with
             ``prior_std_deg``.
     """
@@ -210,8 +213,13 @@ class AnnealedInference(Inference):
                  diffusion=None, rounds: int = 1, round_scale: float = 0.5,
                  propagate: str = "prediction", motion_scale: float = 0.0,
                  refine: Inference | None = None, prior_std_deg: float | None = None,
-                 prior_translation_std: float = 0.1, skeleton=None) -> None:
+                 prior_translation_std: float = 0.1, prior_mean: str = "prediction",
+                 skeleton=None) -> None:
         super().__init__()
+        if prior_mean not in ("prediction", "last_estimate"):
+            raise ValueError(f"prior_mean: expected 'prediction' or 'last_estimate', got "
+                             f"{prior_mean!r}")
+        self.prior_mean = prior_mean
         self.prior_std_deg = prior_std_deg
         prec = rot = None
         if prior_std_deg is not None:
@@ -294,7 +302,11 @@ class AnnealedInference(Inference):
         t0 = time.perf_counter()
         prior = None
         if self._prior_precision is not None and context.previous.dim() == 1:
-            prior = TemporalPrior(context.previous, self._prior_precision, self._prior_rotation)
+            mean = context.previous
+            last = context.extras.get("last_estimate")
+            if self.prior_mean == "last_estimate" and last is not None:
+                mean = last.to(mean)
+            prior = TemporalPrior(mean, self._prior_precision, self._prior_rotation)
         best = None
         info: dict[str, Any] = {"beta": [], "ess": [], "min_energy": []}
         all_stats: list[dict] = []
