@@ -194,8 +194,8 @@ class AnnealedInference(Inference):
             "Optimization and filtering for human motion capture", IJCV 2010). Its result is
             the estimate; the particles and weights carried to the next frame stay the
             annealer's. The energy must then be differentiable (a smooth likelihood).
-        prior_std_deg: optional Gaussian temporal prior about the prediction: every layer's
-            weights are multiplied by ``exp(−½ Σ (wrap(θ − θ̂) / σ)²)`` — not tempered by β —
+        prior_std_deg: optional Gaussian temporal prior about ``θ̂`` (see ``prior_mean``): every
+            layer's weights are multiplied by ``exp(−½ Σ (wrap(θ − θ̂) / σ)²)`` — not tempered by β —
             with ``σ`` = this angle on every rotation DoF and ``prior_translation_std`` metres on
             the root translation (:class:`~torchmocap.filters.temporal_prior.TemporalPrior`).
             None: off (the paper's weights). ``refine`` descends the energy alone.

@@ -641,7 +641,7 @@ def project_to_skeleton(
         return_trace: also return the cost after every iteration (``cost_trace``).
         free_dofs: optional DoF indices (or a ``(D,)`` bool mask) to solve for; the others stay
             at ``theta0`` (clamped into the limits) and never enter the linear algebra — e.g.
-            the upper body's 20-odd DoFs of a 31-DoF skeleton, for a fraction of the cost.
+            the upper body's 13 DoFs of human31's 31, for a fraction of the cost.
             Default: all DoFs.
 
     Returns:

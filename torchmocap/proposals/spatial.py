@@ -227,6 +227,10 @@ class SpatialPriorProposal(Proposal):
         if any(not (math.isfinite(s) and s > 0) for s in stds):
             raise ValueError(f"position_std: expected stds > 0 (metres), got {position_std!r}")
         self.register_buffer("std", torch.tensor(stds))
+        frozen = torch.ones(self.num_dofs, dtype=torch.bool)
+        frozen[self.free] = False
+        self.register_buffer("frozen", frozen)
+        self._free_list = self.free.tolist()
         self._states: dict = {}
 
     @property
@@ -292,10 +296,9 @@ class SpatialPriorProposal(Proposal):
         # ancestor's values
         res = project_to_skeleton(sk, x, base, joints=self.joint_index.tolist(),
                                   prior_weight=self.prior_weight, iterations=self.iterations,
-                                  tol=self.tol, free_dofs=self.free.tolist())
+                                  tol=self.tol, free_dofs=self._free_list)
         theta = res.theta.to(base.dtype)
-        fr = torch.ones(self.num_dofs, dtype=torch.bool, device=base.device)
-        fr[self.free.to(base.device)] = False
+        fr = self.frozen.to(base.device)
         theta[:, fr] = base[:, fr]
         stats["projection_residual_mm"] = float(res.residual.mean()) * 1000
         stats["seconds"] = time.perf_counter() - t0
