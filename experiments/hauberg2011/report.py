@@ -7,7 +7,10 @@ The runs are made by the experiment configs (from the repository root)::
         hydra/launcher=joblib
     OMP_NUM_THREADS=1 torchmocap-track -m +experiment=hauberg2011/rejection \
         hydra/launcher=joblib
+    OMP_NUM_THREADS=1 torchmocap-track -m +experiment=hauberg2011/heldout \
+        hydra/launcher=joblib
     python experiments/hauberg2011/report.py importance   # -> results/importance.md, .png
+    python experiments/hauberg2011/report.py heldout      # -> results/heldout.md, .png
     python experiments/hauberg2011/report.py rejection    # -> results/rejection.md, .png
 
 Each job writes ``runs/<sweep>/<clip>/<tracker>/n<particles>/seed<s>/metrics.json``. Per clip,
@@ -28,7 +31,9 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
-CLIPS = {"swim": "arm waving (CMU swim)", "grab_high": "arbitrary arm motion (HDM05 grab high)"}
+CLIPS = {"swim": "arm waving (CMU swim)", "grab_high": "arbitrary arm motion (HDM05 grab high)",
+         "basketball": "held out: throwing a basketball (HDM05 bd)",
+         "boxing": "held out: boxing (CMU21 box)"}
 SWEEPS = {
     "importance": {
         "trackers": {"hauberg_angular": "angular prior (eq. 3)",
@@ -37,6 +42,14 @@ SWEEPS = {
                      "hauberg_depth": "depth-driven (eq. 14)"},
         "clips": ["swim", "grab_high"],
         "particles": [25, 50, 100, 200],
+    },
+    "heldout": {
+        "trackers": {"hauberg_angular": "angular prior (eq. 3)",
+                     "hauberg_spatial": "spatial prior (eq. 6)",
+                     "hauberg_silhouette": "silhouette-driven (eq. 12)",
+                     "hauberg_depth": "depth-driven (eq. 14)"},
+        "clips": ["basketball", "boxing"],
+        "particles": [100, 200],
     },
     "rejection": {
         "trackers": {"hauberg_angular": "angular prior (eq. 3)",

@@ -17,6 +17,7 @@ from torchmocap.likelihoods import PointCloudLikelihood, Poses
 from torchmocap.proposals import (
     AngularPriorProposal,
     InSilhouette,
+    JointCriterion,
     NearPointCloud,
     PoseInSilhouette,
     ProposalContext,
@@ -94,6 +95,57 @@ def test_silhouette_driven_joints_land_in_the_foreground(scene):
     assert out.stats.get("fallback_silhouette") == 1
     with pytest.raises(ValueError, match="context.frame"):
         driven.sample(ProposalContext(th), 5, g)
+
+
+class _BeyondPlane(JointCriterion):
+    """Accepts points whose first coordinate exceeds ``a`` (a closed-form acceptance rate)."""
+
+    name = "plane"
+
+    def __init__(self, a):
+        self.a, self.calls = a, 0
+
+    def __call__(self, points, joints, state):
+        self.calls += 1
+        return points[:, 0] > self.a
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_per_joint_rejection_matches_one_at_a_time_sampling(seed):
+    """The batched rounds draw what sequential rejection draws: accepted joints follow the
+    normal truncated to the criterion, tries are geometric capped at ``max_tries``, a joint
+    that never passes keeps a draw from the untruncated normal; in O(log max_tries) rounds."""
+    sk = human31()
+    a, cap, P = 1.0, 8, 1500
+    prop = SpatialPriorProposal(sk, criteria=[_BeyondPlane(a)], max_tries=cap)
+    crit = prop.criteria[0]
+    L = prop.joint_index.numel()
+    g = torch.Generator().manual_seed(seed)
+    mu = torch.zeros(P, L, 3, dtype=torch.float64)
+    std = torch.ones(P, L, 1, dtype=torch.float64)
+    x0 = torch.randn(P, L, 3, generator=g, dtype=torch.float64)
+    x, tries, failed = prop._reject(x0.clone(), mu, std, [(crit, None)], g)
+    p = 1 - 0.5 * math.erfc(-a / math.sqrt(2))  # P(N(0, 1) > a)
+    n = P * L
+    ok = x[..., 0] > a
+    # failures: (1 - p)^cap of the joints, and exactly those that are not beyond the plane
+    assert failed == int((~ok).sum())
+    q = (1 - p) ** cap
+    assert abs(failed / n - q) < 4 * math.sqrt(q * (1 - q) / n)
+    assert bool((tries[~ok] == cap).all()) and int(tries.max()) == cap
+    # mean tries of a capped geometric: (1 - (1 - p)^cap) / p
+    m_t = (1 - q) / p
+    assert abs(float(tries.double().mean()) - m_t) < 0.03 * m_t
+    # accepted draws: the normal truncated at a (mean phi(a) / p); the other coordinates
+    # untouched by the criterion stay standard normal
+    phi = math.exp(-a * a / 2) / math.sqrt(2 * math.pi)
+    assert abs(float(x[..., 0][ok].mean()) - phi / p) < 0.02
+    assert abs(float(x[..., 1][ok].std()) - 1.0) < 0.03
+    # joints accepted at the first draw keep it
+    first = x0[..., 0] > a
+    assert torch.equal(x[first], x0[first]) and bool((tries[first] == 1).all())
+    # rounds: the initial check plus batches 1, 2, 4, (1): at most 5 calls for cap 8
+    assert crit.calls <= 5
 
 
 def test_depth_criterion_keeps_joints_near_the_cloud(scene):

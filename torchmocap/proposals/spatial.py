@@ -268,29 +268,9 @@ class SpatialPriorProposal(Proposal):
                     stats[f"fallback_{c.name}"] = 1  # no usable data: this criterion is off
                 else:
                     active.append((c, st))
-        tries = torch.ones(P, L, dtype=torch.long, device=mu.device)
         if active:
-            jidx = self.joint_index.to(mu.device).expand(P, L)
-
-            def ok(pts, js):
-                good = torch.ones(pts.shape[0], dtype=torch.bool, device=pts.device)
-                for c, st in active:
-                    good &= c(pts, js, st).to(good.device)
-                return good
-
-            bad = ~ok(x.reshape(-1, 3), jidx.reshape(-1)).reshape(P, L)
-            for _ in range(self.max_tries - 1):
-                if not bool(bad.any()):
-                    break
-                n = int(bad.sum())
-                cand = mu[bad] + torch.randn(n, 3, generator=generator, dtype=mu.dtype,
-                                             device=mu.device) * std.expand(P, L, 1)[bad]
-                x[bad] = cand
-                tries[bad] += 1
-                good = ok(cand, jidx[bad])
-                idx = bad.nonzero()
-                bad[idx[good, 0], idx[good, 1]] = False
-            stats["failed_joints"] = int(bad.sum())
+            x, tries, failed = self._reject(x, mu, std.expand(P, L, 1), active, generator)
+            stats["failed_joints"] = failed
             stats["joint_tries"] = float(tries.float().mean())
         # project onto the manifold over the tracked DoFs only; the others keep each
         # ancestor's values
@@ -303,6 +283,45 @@ class SpatialPriorProposal(Proposal):
         stats["projection_residual_mm"] = float(res.residual.mean()) * 1000
         stats["seconds"] = time.perf_counter() - t0
         return Proposed(particles=theta, stats=stats)
+
+    def _reject(self, x, mu, std, active, generator):
+        """Per-joint rejection sampling, in rounds of growing batches (1, 2, 4, ... candidates
+        for every joint still rejected): the first accepted candidate of a joint's batch is its
+        draw, so the result has the distribution of one-at-a-time sampling — the same
+        ``N(mu_l, std_l^2 I)`` restricted to the criteria — in ``O(log max_tries)`` rounds of
+        criterion evaluations instead of ``max_tries``. A joint still rejected after
+        ``max_tries`` draws keeps its last draw.
+
+        Shapes: ``x, mu, std (P, L, 3)``; returns ``x (P, L, 3)``, ``tries (P, L)`` (draws used,
+        the accepted one included) and the number of joints that failed.
+        """
+        P, L = x.shape[:2]
+        jidx = self.joint_index.to(x.device).expand(P, L)
+
+        def ok(pts, js):
+            good = torch.ones(pts.shape[0], dtype=torch.bool, device=pts.device)
+            for c, st in active:
+                good &= c(pts, js, st).to(good.device)
+            return good
+
+        bad = ~ok(x.reshape(-1, 3), jidx.reshape(-1)).reshape(P, L)
+        tries = torch.ones(P, L, dtype=torch.long, device=x.device)
+        used, batch = 1, 1
+        while used < self.max_tries and bool(bad.any()):
+            b = min(batch, self.max_tries - used)
+            idx = bad.nonzero()  # (n, 2)
+            n = idx.shape[0]
+            cand = mu[bad][:, None] + torch.randn(n, b, 3, generator=generator, dtype=x.dtype,
+                                                  device=x.device) * std[bad][:, None]
+            good = ok(cand.reshape(-1, 3), jidx[bad].repeat_interleave(b)).reshape(n, b)
+            hit = good.any(1)
+            first = torch.where(hit, good.to(torch.uint8).argmax(1), b - 1)  # else the last
+            x[idx[:, 0], idx[:, 1]] = cand[torch.arange(n, device=x.device), first]
+            tries[idx[:, 0], idx[:, 1]] += first + 1
+            bad[idx[hit, 0], idx[hit, 1]] = False
+            used += b
+            batch *= 2
+        return x, tries, int(bad.sum())
 
     def extra_repr(self) -> str:
         return (f"joints={self.joint_index.numel()}, free_dofs={self.free.numel()}, "
