@@ -252,8 +252,11 @@ def main(argv=None) -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     stem = "table1" + (f"_{args.tag}" if args.tag else "")
-    (out / f"{stem}.json").write_text(json.dumps(res, indent=2))
-    (out / f"{stem}.md").write_text(markdown(res))
+    for name, text in ((f"{stem}.json", json.dumps(res, indent=2)),
+                       (f"{stem}.md", markdown(res))):
+        tmp = out / f"{name}.tmp"  # written whole, then renamed: never a half-written table
+        tmp.write_text(text)
+        tmp.replace(out / name)
     print(f"wrote {out / stem}.md ({res['seconds']:.0f} s)")
 
 
