@@ -103,10 +103,11 @@ class _BeyondPlane(JointCriterion):
     name = "plane"
 
     def __init__(self, a):
-        self.a, self.calls = a, 0
+        self.a, self.calls, self.seen = a, 0, 0
 
     def __call__(self, points, joints, state):
         self.calls += 1
+        self.seen += points.shape[0]
         return points[:, 0] > self.a
 
 
@@ -146,6 +147,40 @@ def test_per_joint_rejection_matches_one_at_a_time_sampling(seed):
     assert torch.equal(x[first], x0[first]) and bool((tries[first] == 1).all())
     # rounds: the initial check plus batches 1, 2, 4, (1): at most 5 calls for cap 8
     assert crit.calls <= 5
+
+
+class _InBall(JointCriterion):
+    """Accepts points within ``r`` of the origin; records how many points it was asked about."""
+
+    name = "ball"
+
+    def __init__(self, r):
+        self.r, self.seen = r, 0
+
+    def __call__(self, points, joints, state):
+        self.seen += points.shape[0]
+        return points.norm(dim=-1) < self.r
+
+
+def test_per_joint_rejection_with_two_criteria_accepts_their_conjunction():
+    """Every accepted joint passes both criteria; the second is only asked about the points the
+    first passed; acceptance rate of the conjunction from the accepted fraction."""
+    sk = human31()
+    plane, ball = _BeyondPlane(0.0), _InBall(1.5)
+    prop = SpatialPriorProposal(sk, criteria=[plane, ball], max_tries=64)
+    L = prop.joint_index.numel()
+    g = torch.Generator().manual_seed(0)
+    P = 400
+    mu = torch.zeros(P, L, 3, dtype=torch.float64)
+    x = torch.randn(P, L, 3, generator=g, dtype=torch.float64)
+    x, tries, failed = prop._reject(x, mu, torch.ones(P, L, 1, dtype=torch.float64),
+                                    [(plane, None), (ball, None)], g)
+    ok = (x[..., 0] > 0) & (x.norm(dim=-1) < 1.5)
+    assert failed == 0 and bool(ok.all())
+    # P(x0 > 0 and |x| < 1.5) = P(chi2_3 < 2.25) / 2 = 0.2389 for a standard normal
+    p = 0.23892
+    assert abs(float(tries.double().mean()) - 1 / p) < 0.05 / p
+    assert ball.seen < plane.seen  # the ball only sees what passed the plane
 
 
 def test_depth_criterion_keeps_joints_near_the_cloud(scene):

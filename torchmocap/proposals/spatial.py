@@ -298,10 +298,13 @@ class SpatialPriorProposal(Proposal):
         P, L = x.shape[:2]
         jidx = self.joint_index.to(x.device).expand(P, L)
 
-        def ok(pts, js):
+        def ok(pts, js):  # every criterion, each on the points the previous ones passed
             good = torch.ones(pts.shape[0], dtype=torch.bool, device=pts.device)
             for c, st in active:
-                good &= c(pts, js, st).to(good.device)
+                idx = good.nonzero().squeeze(1)
+                if not idx.numel():
+                    break
+                good[idx] = c(pts[idx], js[idx], st).to(good.device)
             return good
 
         bad = ~ok(x.reshape(-1, 3), jidx.reshape(-1)).reshape(P, L)
