@@ -73,6 +73,17 @@ def test_tracker_refit_passes_alternate_pose_and_body():
     assert p["body_fit"]["iou_after"] >= info["body_fit"]["iou_after"] - 0.01
     ratio = rt.body.radii / CapsuleBody(sk).float().radii
     assert float(ratio.median()) > 1.1  # the body was fitted thicker, in place
+    # metrics.json reports the fit: IoU before the first fit, after the last pass, JSON-clean
+    import json
+
+    from torchmocap.cli.track import _diagnostics
+
+    m = json.loads(json.dumps(_diagnostics(state.infos)))["body_fit"]
+    assert m["passes"] == 2
+    assert m["iou_before"] == pytest.approx(info["body_fit"]["iou_before"])
+    assert m["iou_after"] == pytest.approx(p["body_fit"]["iou_after"])
+    assert m["iou_after"] > m["iou_before"]
+    assert m["scales"] == pytest.approx(p["body_fit"]["scales"])
     with pytest.raises(ValueError, match="refit_passes"):
         Tracker(sk, tr.predictor, tr.proposal, tr.likelihood, tr.inference, tr.estimator,
                 refit_passes=-1)

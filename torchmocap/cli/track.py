@@ -356,7 +356,27 @@ def _diagnostics(infos: list) -> dict:
         out["seconds_first_frame"] = infos[0]["seconds"]
         if "seconds_per_round" in infos[0]:
             out["seconds_per_round"] = infos[0]["seconds_per_round"]
+    if infos and isinstance(infos[0].get("body_fit"), dict):
+        # the subject's body fitted at the first frame: silhouette IoU and energy before/after
+        # (after the last refit pass, when there were any), fitted scale per segment
+        fits = [infos[0]["body_fit"]] + [p["body_fit"] for p in infos[0].get("refit", [])
+                                         if isinstance(p.get("body_fit"), dict)]
+        out["body_fit"] = {
+            "iou_before": _number(fits[0].get("iou_before")),
+            "iou_after": _number(fits[-1].get("iou_after")),
+            "energy_before": _number(fits[0].get("energy_before")),
+            "energy_after": _number(fits[-1].get("energy_after")),
+            "scales": {str(k): _number(v) for k, v in dict(fits[-1].get("scales", {})).items()},
+            "passes": len(fits)}
     return out
+
+
+def _number(v):
+    """A float for JSON (``None`` for a missing or non-finite value)."""
+    if v is None:
+        return None
+    v = float(v)
+    return v if math.isfinite(v) else None
 
 
 def _validate_outputs(cfg) -> None:
