@@ -8,8 +8,9 @@ Observations: the bundled CMU walk with its root held (the paper's subjects stan
 the ``stereo`` scenario (one viewpoint: left-camera silhouettes and a depth cloud of up to 2000
 points). Trackers: the presets ``hauberg_angular``, ``hauberg_spatial``,
 ``hauberg_silhouette`` and ``hauberg_depth`` (upper body, point-cloud likelihood thinned to 400
-points). Each tracker runs the whole clip ``--repeats`` times; the median seconds per frame, the
-ratio to the angular prior and the share of it spent in the proposal (``seconds`` of the
+points). Each tracker runs the whole clip ``--repeats`` times, the trackers taking turns (one round
+times each once, after a warm-up round); the median seconds per frame, the median over rounds of
+the ratio to the angular prior and the share spent in the proposal (``seconds`` of the
 proposal's statistics) are printed. Run it on an idle machine: timings under load mean nothing.
 """
 
@@ -45,26 +46,31 @@ def main() -> None:
           f"{args.particles} particles, {args.frames} frames, stereo scenario "
           f"({int(seq.depth.counts.float().mean()) if hasattr(seq.depth, 'counts') else '?'} "
           "points per frame before thinning)")
-    print("| tracker | s/frame (median of runs) | time / angular | proposal s/frame |")
+    print("| tracker | s/frame (median of runs) | time / angular (median of per-round ratios) "
+          "| proposal s/frame |")
     print("|---|---:|---:|---:|")
-    base = None
-    for name in PRESETS:
-        cfg = tracker_config(name, [f"tracker.num_particles={args.particles}"])
-        times, props = [], []
-        for r in range(args.repeats + 1):
-            tr = build_tracker(cfg, rt, seed=r)
+    cfgs = {name: tracker_config(name, [f"tracker.num_particles={args.particles}"])
+            for name in PRESETS}
+    times = {name: [] for name in PRESETS}
+    props = {name: [] for name in PRESETS}
+    # round robin: every round times each tracker once, so a slow spell of a shared machine
+    # hits all of them and the per-round ratios to the angular prior stay comparable
+    for r in range(args.repeats + 1):
+        for name in PRESETS:
+            tr = build_tracker(cfgs[name], rt, seed=r)
             t0 = time.perf_counter()
             track = tr.run(seq, progress=False)
             dt = (time.perf_counter() - t0) / args.frames
             if r == 0:
                 continue  # warm-up
-            times.append(dt)
-            props.append(sum(float(i.get("proposal", {}).get("seconds", 0.0))
-                             for i in track.infos[1:]) / args.frames)
-        t = statistics.median(times)
-        base = t if base is None else base
-        print(f"| {name} | {t:.3f} | x{t / base:.2f} | {statistics.median(props):.3f} |")
-
+            times[name].append(dt)
+            props[name].append(sum(float(i.get("proposal", {}).get("seconds", 0.0))
+                                   for i in track.infos[1:]) / args.frames)
+    base = times[PRESETS[0]]
+    for name in PRESETS:
+        ratio = statistics.median(t / b for t, b in zip(times[name], base))
+        print(f"| {name} | {statistics.median(times[name]):.3f} | x{ratio:.2f} "
+              f"| {statistics.median(props[name]):.3f} |")
 
 if __name__ == "__main__":
     main()
