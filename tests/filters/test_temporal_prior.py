@@ -111,3 +111,25 @@ def test_prior_mean_last_estimate_centres_on_the_previous_estimate():
         assert 0.9 < float(b.estimate[0]) < 1.1
     with pytest.raises(ValueError, match="prior_mean"):
         AnnealedInference(prior_mean="mode")
+
+
+def test_prior_mean_fraction_blends_along_the_shorter_arc():
+    """``prior_mean=a``: the point ``a`` of the way from the previous estimate to the prediction;
+    a rotation crossing ±π goes the short way, a translation linearly; 0 and 1 are the named
+    centres."""
+    sk = SimpleNamespace(num_dofs=3, translation_dofs=[0])
+    ctx = ProposalContext(torch.tensor([1.0, -3.0, 0.2], dtype=F64))  # the prediction
+    ctx.extras["last_estimate"] = torch.tensor([0.0, 3.0, 0.4], dtype=F64)
+    half = AnnealedInference(prior_std_deg=30.0, skeleton=sk, prior_mean=0.5)
+    c = half.prior_centre(ctx)
+    gap = 2 * math.pi - 6.0  # 3.0 -> -3.0 the short way, through pi
+    assert torch.allclose(c, torch.tensor([0.5, 3.0 + gap / 2, 0.3], dtype=F64))
+    for a, name in ((0.0, "last_estimate"), (1.0, "prediction")):
+        x = AnnealedInference(prior_std_deg=30.0, skeleton=sk, prior_mean=a).prior_centre(ctx)
+        y = AnnealedInference(prior_std_deg=30.0, skeleton=sk, prior_mean=name).prior_centre(ctx)
+        assert torch.equal(x, y)
+    assert torch.equal(AnnealedInference(prior_std_deg=30.0, skeleton=sk, prior_mean=1.0)
+                       .prior_centre(ctx), ctx.previous)
+    for bad in (-0.1, 1.5, True, "half"):
+        with pytest.raises(ValueError, match="prior_mean"):
+            AnnealedInference(prior_mean=bad)

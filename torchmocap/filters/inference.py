@@ -200,9 +200,12 @@ class AnnealedInference(Inference):
             the root translation (:class:`~torchmocap.filters.temporal_prior.TemporalPrior`).
             None: off (the paper's weights). ``refine`` descends the energy alone.
         prior_translation_std: see ``prior_std_deg``.
-        prior_mean: ``"prediction"`` (the AR prediction, the dynamics' own mean) or
+        prior_mean: ``"prediction"`` (the AR prediction, the dynamics' own mean),
             ``"last_estimate"`` (the previous frame's estimate: no momentum, so an estimate held
-            near the prior cannot feed the AR extrapolation that centres the next one).
+            near the prior cannot feed the AR extrapolation that centres the next one), or a
+            number ``a`` in ``[0, 1]``: the point ``a`` of the way from the previous estimate to
+            the prediction (angles along the shorter arc; 0 = ``"last_estimate"``,
+            1 = ``"prediction"``) — damped momentum.
         skeleton: the tracking model (runtime; which DoFs are translations), needed with
             ``prior_std_deg``.
     """
@@ -213,13 +216,19 @@ class AnnealedInference(Inference):
                  diffusion=None, rounds: int = 1, round_scale: float = 0.5,
                  propagate: str = "prediction", motion_scale: float = 0.0,
                  refine: Inference | None = None, prior_std_deg: float | None = None,
-                 prior_translation_std: float = 0.1, prior_mean: str = "prediction",
+                 prior_translation_std: float = 0.1, prior_mean: str | float = "prediction",
                  skeleton=None) -> None:
         super().__init__()
-        if prior_mean not in ("prediction", "last_estimate"):
-            raise ValueError(f"prior_mean: expected 'prediction' or 'last_estimate', got "
-                             f"{prior_mean!r}")
-        self.prior_mean = prior_mean
+        names = {"prediction": 1.0, "last_estimate": 0.0}
+        if isinstance(prior_mean, str) and prior_mean in names:
+            blend = names[prior_mean]
+        elif (isinstance(prior_mean, (int, float)) and not isinstance(prior_mean, bool)
+              and 0.0 <= prior_mean <= 1.0):
+            blend = float(prior_mean)
+        else:
+            raise ValueError(f"prior_mean: expected 'prediction', 'last_estimate' or a number "
+                             f"in [0, 1], got {prior_mean!r}")
+        self.prior_mean, self._prior_blend = prior_mean, blend
         self.prior_std_deg = prior_std_deg
         prec = rot = None
         if prior_std_deg is not None:
@@ -297,16 +306,29 @@ class AnnealedInference(Inference):
                      log_prior=None if prior is None else (lambda x: -prior(x)))
         return res, stats
 
+    def prior_centre(self, context) -> torch.Tensor:
+        """The temporal prior's mean ``(D,)`` for ``context`` (see ``prior_mean``): the
+        prediction ``context.previous``, the previous estimate
+        ``context.extras["last_estimate"]`` (when the tracker passes one), or the point
+        ``prior_mean`` of the way between them."""
+        mean = context.previous
+        last = context.extras.get("last_estimate")
+        if self._prior_blend < 1.0 and last is not None:
+            last = last.to(mean)
+            d = mean - last  # last estimate -> prediction, angles along the shorter arc
+            if self._prior_rotation is not None:
+                d = torch.where(self._prior_rotation.to(d.device),
+                                torch.remainder(d + math.pi, 2 * math.pi) - math.pi, d)
+            mean = last + self._prior_blend * d
+        return mean
+
     def forward(self, energy, proposal, estimator, context, num: int,
                 generator: torch.Generator | None = None) -> InferenceResult:
         t0 = time.perf_counter()
         prior = None
         if self._prior_precision is not None and context.previous.dim() == 1:
-            mean = context.previous
-            last = context.extras.get("last_estimate")
-            if self.prior_mean == "last_estimate" and last is not None:
-                mean = last.to(mean)
-            prior = TemporalPrior(mean, self._prior_precision, self._prior_rotation)
+            prior = TemporalPrior(self.prior_centre(context), self._prior_precision,
+                                  self._prior_rotation)
         best = None
         info: dict[str, Any] = {"beta": [], "ess": [], "min_energy": []}
         all_stats: list[dict] = []
