@@ -32,7 +32,7 @@ RESULTS = HERE / "results"
 CLIPS = {"dance_cmu21": "dance (CMU21)", "salsa": "salsa (CMU 60_12)",
          "boxing": "boxing (CMU21 box-1)"}
 TRACKERS = {"kjs": "KJS + CSS", "css": "CSS", "ss": "SS"}
-SEEDS = [0, 1, 2]
+SEEDS = [0, 1, 2, 3, 4]
 
 
 def _per_frame(run_dir: Path, m: dict) -> tuple[list[float], str]:
