@@ -3,7 +3,6 @@ and seed spreads, ESS and time ratios to the angular prior, missing runs listed.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import statistics
 from pathlib import Path
@@ -11,14 +10,6 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def _report():
-    spec = importlib.util.spec_from_file_location(
-        "hauberg_report", ROOT / "experiments" / "hauberg2011" / "report.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def _write(d: Path, err: float, ess: float, t: float, rej: float | None = None) -> None:
@@ -30,8 +21,8 @@ def _write(d: Path, err: float, ess: float, t: float, rej: float | None = None) 
     (d / "metrics.json").write_text(json.dumps(m))
 
 
-def test_importance_table_and_ratios(tmp_path):
-    rep = _report()
+def test_importance_table_and_ratios(tmp_path, load_script):
+    rep = load_script("hauberg2011/report.py")
     runs = tmp_path / "runs"
     errs = {"hauberg_angular": [30.0, 32.0, 34.0], "hauberg_depth": [20.0, 21.0, 25.0]}
     for t, es in errs.items():
@@ -50,8 +41,8 @@ def test_importance_table_and_ratios(tmp_path):
     assert "grab high" not in md  # a clip without runs has no section
 
 
-def test_rejection_counts_and_no_runs(tmp_path):
-    rep = _report()
+def test_rejection_counts_and_no_runs(tmp_path, load_script):
+    rep = load_script("hauberg2011/report.py")
     runs = tmp_path / "runs"
     for s in range(3):
         _write(runs / "swim" / "hauberg_rejection" / "n25" / f"seed{s}", 40.0, 1.0, 2.0,
@@ -65,11 +56,11 @@ def test_rejection_counts_and_no_runs(tmp_path):
 
 
 @pytest.mark.parametrize("sweep", ["importance", "rejection"])
-def test_the_report_names_every_run_of_its_experiment_config(sweep):
+def test_the_report_names_every_run_of_its_experiment_config(sweep, load_script):
     """The report reads exactly the cells the experiment config sweeps."""
     import yaml
 
-    rep = _report()
+    rep = load_script("hauberg2011/report.py")
     cfg = yaml.safe_load((ROOT / "conf" / "experiment" / "hauberg2011" / f"{sweep}.yaml")
                          .read_text())["hydra"]["sweeper"]["params"]
     spec = rep.SWEEPS[sweep]

@@ -5,7 +5,6 @@ table and its JSON are written."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -15,19 +14,12 @@ ROOT = Path(__file__).resolve().parents[2]
 CLIP = ROOT / "tests" / "data_files" / "mocap" / "cmu" / "60_12_scaled.bvh"
 
 
-def _table1():
-    spec = importlib.util.spec_from_file_location(
-        "sminchisescu_table1", ROOT / "experiments" / "sminchisescu2003" / "table1.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 @pytest.fixture(scope="module")
-def table(tmp_path_factory):
+def table(tmp_path_factory, load_script):
     out = tmp_path_factory.mktemp("table1")
-    _table1().main(["--clip", str(CLIP), "--time", "0.5", "--samples", "200",
-                    "--iterations", "50", "--out", str(out)])
+    table1 = load_script("sminchisescu2003/table1.py")
+    table1.main(["--clip", str(CLIP), "--time", "0.5", "--samples", "200", "--iterations", "50",
+                 "--out", str(out)])
     return out, json.loads((out / "table1.json").read_text())
 
 
