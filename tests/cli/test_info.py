@@ -51,11 +51,25 @@ def test_amc_finds_its_asf(capsys, mocap):
     assert info["frames"] == 120 and abs(info["height_m"] - 1.61) < 0.03
 
 
-def test_amc_needs_asf_when_ambiguous(capsys, mocap):
+def test_amc_finds_its_asf_by_name(capsys, mocap):
+    # three .asf files beside it: the one named after the AMC (HDM05's convention)
     amc = mocap / "hdm05" / "HDM_bk_hopBothLegs1hops_017_120.amc"
+    rc, info, _ = _run(capsys, amc)
+    assert rc == 0 and info["skeleton_family"] == "hdm05_asf"
+    assert abs(info["height_m"] - 1.79) < 0.03  # bk's skeleton, not bd's or dg's
+    rc, other, _ = _run(capsys, amc, "--asf", mocap / "hdm05" / "HDM_dg.asf")
+    assert rc == 0 and abs(other["height_m"] - info["height_m"]) > 0.05  # --asf wins
+
+
+def test_amc_needs_asf_when_ambiguous(capsys, tmp_path, mocap):
+    for name in ("HDM_bk.asf", "HDM_dg.asf"):
+        shutil.copy(mocap / "hdm05" / name, tmp_path / name)
+    amc = tmp_path / "hop.amc"  # named after neither
+    shutil.copy(mocap / "hdm05" / "HDM_bk_hopBothLegs1hops_017_120.amc", amc)
     rc, _, err = _run(capsys, amc)
-    assert rc == 2 and "3 .asf files beside this AMC" in err and "--asf" in err
-    rc, info, _ = _run(capsys, amc, "--asf", mocap / "hdm05" / "HDM_bk.asf")
+    assert rc == 2 and "2 .asf files beside this AMC and none named after it" in err
+    assert "HDM_bk.asf, HDM_dg.asf" in err and "--asf" in err
+    rc, info, _ = _run(capsys, amc, "--asf", tmp_path / "HDM_bk.asf")
     assert rc == 0 and info["skeleton_family"] == "hdm05_asf"
     assert abs(info["height_m"] - 1.79) < 0.03
 

@@ -19,3 +19,22 @@ def test_exception_fps(fps, tmp_path):
 def test_feature_fps_default_and_ignored_for_bvh():
     clip = load_motion(bundled_clip_path(), fps=30.0)  # BVH states its rate: 120
     assert clip.fps == 120.0
+
+
+def test_find_asf_by_name(tmp_path):
+    from torchmocap.io import MotionFormatError, find_asf
+
+    amc = tmp_path / "HDM_bk_hop_017_120.amc"
+    amc.write_text("")
+    with pytest.raises(MotionFormatError, match="no .asf file beside this AMC"):
+        find_asf(amc)
+    (tmp_path / "other.asf").write_text("")
+    assert find_asf(amc) == tmp_path / "other.asf"  # the only one
+    for name in ("HDM_bd.asf", "HDM_bk.asf", "HDM.asf", "HDM_bk_hop.ASF"):
+        (tmp_path / name).write_text("")
+    assert find_asf(amc) == tmp_path / "HDM_bk_hop.ASF"  # longest name prefix, any case
+    (tmp_path / "HDM_bk_hop.ASF").unlink()
+    assert find_asf(amc) == tmp_path / "HDM_bk.asf"
+    assert find_asf(tmp_path / "HDM_bd.amc") == tmp_path / "HDM_bd.asf"  # same name
+    with pytest.raises(MotionFormatError, match="none named after it"):
+        find_asf(tmp_path / "HDMX_bk_1.amc")  # a prefix without the underscore: no match

@@ -15,19 +15,32 @@ MOTION_SUFFIXES = (".bvh", ".amc", ".asf")
 
 
 def find_asf(amc_path: str | Path) -> Path:
-    """The ASF of an AMC file: the only ``.asf`` in the AMC's folder.
+    """The ASF of an AMC file, from the AMC's folder: the only ``.asf`` there, or else the one
+    whose name is the AMC's name up to an underscore (the CMU and HDM05 conventions:
+    ``01_01.amc`` -> ``01.asf``, ``HDM_bk_hop..._120.amc`` -> ``HDM_bk.asf``; the longest such
+    name when several match, compared case-insensitively).
 
     Raises:
-        MotionFormatError: none or several ``.asf`` files there (then pass ``asf=``).
+        MotionFormatError: no ``.asf`` file there, or several and none (or no single longest)
+            named after the AMC (then pass ``asf=``).
     """
     amc_path = Path(amc_path)
     found = sorted(p for p in amc_path.parent.glob("*") if p.suffix.lower() == ".asf")
-    if len(found) != 1:
-        what = "no .asf file" if not found else f"{len(found)} .asf files"
-        raise MotionFormatError(
-            f"{what} beside this AMC; name its skeleton explicitly (asf=... / --asf)", amc_path
-        )
-    return found[0]
+    if len(found) == 1:
+        return found[0]
+    stem = amc_path.stem.lower()
+    named = [p for p in found if stem == p.stem.lower() or stem.startswith(p.stem.lower() + "_")]
+    longest = max((len(p.stem) for p in named), default=0)
+    named = [p for p in named if len(p.stem) == longest]
+    if len(named) == 1:
+        return named[0]
+    what = "no .asf file" if not found else f"{len(found)} .asf files"
+    detail = "" if not found else (
+        f" and {'none' if not named else len(named)} named after it "
+        f"({', '.join(p.name for p in found)})")
+    raise MotionFormatError(
+        f"{what} beside this AMC{detail}; name its skeleton explicitly (asf=... / --asf)",
+        amc_path)
 
 
 def load_motion(
@@ -38,7 +51,7 @@ def load_motion(
     fps: float | None = None,
     skeleton_map: str | Path | None = None,
 ) -> MotionClip:
-    """Read a ``.bvh``, an ``.amc`` (with ``asf`` or the only ``.asf`` beside it), or an
+    """Read a ``.bvh``, an ``.amc`` (with ``asf`` or the ``.asf`` :func:`find_asf` picks), or an
     ``.asf`` alone (its rest pose as a one-frame clip) into a Z-up metre :class:`MotionClip`.
 
     Args:
