@@ -12,6 +12,12 @@ From a :class:`~torchmocap.io.MotionClip` of any mapped skeleton family:
    orientations after calibrating each bone's constant rest-frame difference between source and
    human31 (``C_b = mean_t R_src,b(t)^T R_h31,b(t)``, projected onto SO(3)); the orientation term
    fixes the twists that positions cannot see (upper arm with a straight elbow, ...).
+4. *Continuation in time* after each stage: every frame is re-fitted from its neighbours'
+   solutions and keeps whichever fit is closer to the source; frames that improved pass their
+   solution on, until none improves. Every frame starts from the same standing template, and in
+   deep flexion (a squat, a crouch, a jumping jack's arms overhead) that start leads
+   Levenberg-Marquardt into a wrong minimum (hips flexed backwards, knees straight: 0.2 m
+   residuals); the neighbouring frames' solutions lead it into the right one.
 
 The per-frame residual (mean joint distance, metres) is reported; it is what the human31 model
 cannot express of the real motion.
@@ -23,7 +29,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from torchmocap.ik.lm import fit_pose_lm
+from torchmocap.ik.lm import LMResult, fit_pose_lm
 from torchmocap.skeleton import Skeleton, human31
 
 __all__ = ["Subject", "fit_subject"]
@@ -50,9 +56,10 @@ class Subject:
         rotation_residual: ``(T,)`` mean angle (rad) between fitted and source bone frames.
         fps: frame rate.
         family: skeleton family of the source (``None`` when the joints were guessed).
-        info: ``lm_iterations``; ``joint_map`` (human31 joint -> source joint) and
-            ``guessed_joints`` (the human31 joints whose source was guessed from the joint
-            names because no skeleton map applies; empty with a map).
+        info: ``lm_iterations``; ``continuation`` (``passes``, ``frames_refitted``: the frames
+            whose fit the continuation in time replaced); ``joint_map`` (human31 joint ->
+            source joint) and ``guessed_joints`` (the human31 joints whose source was guessed
+            from the joint names because no skeleton map applies; empty with a map).
     """
 
     skeleton: Skeleton
@@ -95,6 +102,87 @@ def _root_init(P: torch.Tensor, sk: Skeleton) -> torch.Tensor:
     theta[:, :3] = P[:, j("pelvis")] - sk.offsets[0].to(P.dtype)
     theta[:, 3], theta[:, 4], theta[:, 5] = a, b, c
     return theta
+
+
+def _data_cost(fit, rotation_weight: float) -> torch.Tensor:
+    """``(B,)`` squared distance to the source (positions, plus weighted orientations): the
+    cost without the pull towards the start, comparable between fits from different starts."""
+    c = (fit.position_error ** 2).sum(1)
+    if fit.rotation_error is not None:
+        c = c + rotation_weight ** 2 * (fit.rotation_error ** 2).sum(1)
+    return c
+
+
+def _continue_in_time(fit, refit, rotation_weight: float, min_gain: float = 0.002,
+                      max_passes: int | None = None):
+    """Continuation of a per-frame fit along time.
+
+    Every frame is re-fitted from the solutions of its two neighbours (one batch); a frame keeps
+    the new fit when its root-mean-square distance to the source (per targeted joint, the
+    weighted orientation errors included) drops by more than ``min_gain`` metres: another
+    minimum, not the same one fitted a little further (those differ by far less). The frames that
+    improved are the sources of the next pass, for their neighbours only, until no frame
+    improves (a wrong stretch of ``k`` frames is repaired in about ``k`` passes).
+
+    Args:
+        fit: the :class:`~torchmocap.ik.lm.LMResult` of all ``T`` frames.
+        refit: ``refit(theta0 (N, D), frames (N,)) -> LMResult`` fits the given frames from
+            the given starts.
+        rotation_weight: weight of the orientation errors in the compared cost.
+        min_gain: decrease of the RMS distance (metres) a new fit must reach to replace the
+            old one.
+        max_passes: cap on the passes (default: ``T``).
+
+    Returns:
+        ``(theta (T, D), position_error (T, M), rotation_error (T, K) | None, passes,
+        frames_changed)``.
+    """
+    theta = fit.theta.clone()
+    pe = fit.position_error.clone()
+    re = None if fit.rotation_error is None else fit.rotation_error.clone()
+    cost = _data_cost(fit, rotation_weight)
+    T, M = pe.shape
+    if T < 2:
+        return theta, pe, re, 0, 0
+    t = torch.arange(T)
+    src = torch.cat([t[:-1], t[1:]])  # pass 1: every frame from both neighbours
+    dst = torch.cat([t[1:], t[:-1]])
+    changed = torch.zeros(T, dtype=torch.bool)
+    passes = 0
+    while src.numel() and passes < (max_passes or T):
+        passes += 1
+        new = refit(theta[src], dst)
+        c = _data_cost(new, rotation_weight)
+        best = torch.full((T,), torch.inf, dtype=c.dtype).scatter_reduce(0, dst, c, "amin")
+        gain = (cost[dst] / M).sqrt() - (c / M).sqrt()
+        win = torch.nonzero((c == best[dst]) & (gain > min_gain)).squeeze(1)
+        if not win.numel():
+            break
+        # one candidate per improved frame (a tie between the two neighbours: the first)
+        k = torch.full((T,), src.numel(), dtype=torch.long).scatter_reduce(
+            0, dst[win], win, "amin")
+        frames = torch.nonzero(k < src.numel()).squeeze(1)
+        k = k[frames]
+        theta[frames] = new.theta[k]
+        pe[frames] = new.position_error[k]
+        if re is not None:
+            re[frames] = new.rotation_error[k]
+        cost[frames] = c[k]
+        changed[frames] = True
+        left, right = frames[frames > 0], frames[frames < T - 1]
+        src = torch.cat([left, right])
+        dst = torch.cat([left - 1, right + 1])
+    return theta, pe, re, passes, int(changed.sum())
+
+
+def _continued(fit, refit, rotation_weight: float):
+    """:func:`_continue_in_time` as an :class:`~torchmocap.ik.lm.LMResult`, and its
+    ``(passes, frames_changed)``."""
+    theta, pe, re, passes, changed = _continue_in_time(fit, refit, rotation_weight)
+    out = LMResult(theta=theta, position_error=pe, rotation_error=re, cost=fit.cost,
+                   iterations=fit.iterations)
+    out.cost = _data_cost(out, rotation_weight)  # the cost to the source, without the pull
+    return out, (passes, changed)
 
 
 def _symmetric(values: dict[str, torch.Tensor], mirror_x: bool) -> dict[str, torch.Tensor]:
@@ -187,9 +275,19 @@ def fit_subject(
         src = Rsrc[:, [clip.joint_index(smap.bones[b]) for b in bones]]  # (T, K, 3, 3)
         C = _project_so3((src.transpose(-1, -2) @ kin.rotations[:, bj]).mean(0))  # (K, 3, 3)
         target = src @ C
-        fit = fit_pose_lm(sk, fit.theta, P, joints, target_rotations=target,
-                          rotation_joints=bj, rotation_weight=rotation_weight,
-                          iterations=iterations, prior_weight=prior_weight)
+
+        def refit(th, fr):
+            return fit_pose_lm(sk, th, P[fr], joints, target_rotations=target[fr],
+                               rotation_joints=bj, rotation_weight=rotation_weight,
+                               iterations=iterations, prior_weight=prior_weight)
+        fit = refit(fit.theta, torch.arange(T))
+    else:
+        def refit(th, fr):
+            return fit_pose_lm(sk, th, P[fr], joints, iterations=iterations,
+                               prior_weight=prior_weight)
+    # -- continuation in time: frames in a wrong minimum take a neighbour's way out
+    fit, cont = _continued(fit, refit, rotation_weight)
+    if bones:
         R_gt[:, bj] = target
         rot_res = fit.rotation_error.mean(1)
     return Subject(
@@ -203,6 +301,7 @@ def fit_subject(
         fps=float(clip.fps),
         family=getattr(smap, "family", None),
         info={"lm_iterations": fit.iterations,
+              "continuation": {"passes": cont[0], "frames_refitted": cont[1]},
               "guessed_joints": guessed_joints(clip, skeleton_map),
               "joint_map": {h: clip.joint_names[i] for h, i in idx.items()}},
     )
