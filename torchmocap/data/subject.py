@@ -12,12 +12,12 @@ From a :class:`~torchmocap.io.MotionClip` of any mapped skeleton family:
    orientations after calibrating each bone's constant rest-frame difference between source and
    human31 (``C_b = mean_t R_src,b(t)^T R_h31,b(t)``, projected onto SO(3)); the orientation term
    fixes the twists that positions cannot see (upper arm with a straight elbow, ...).
-4. *Continuation in time* after each stage: every frame is re-fitted from its neighbours'
+4. *Continuation in time* after the last stage: every frame is re-fitted from its neighbours'
    solutions and keeps whichever fit is closer to the source; frames that improved pass their
    solution on, until none improves. Every frame starts from the same standing template, and in
-   deep flexion (a squat, a crouch, a jumping jack's arms overhead) that start leads
-   Levenberg-Marquardt into a wrong minimum (hips flexed backwards, knees straight: 0.2 m
-   residuals); the neighbouring frames' solutions lead it into the right one.
+   large excursions (arms swung overhead, a deep squat) that start can lead
+   Levenberg-Marquardt into a wrong minimum (e.g. hips flexed backwards, knees straight: up to
+   0.2 m residuals); the neighbouring frames' solutions lead it into the right one.
 
 The per-frame residual (mean joint distance, metres) is reported; it is what the human31 model
 cannot express of the real motion.
