@@ -84,6 +84,33 @@ def test_joint_limits_respected(sk):
     assert float(res.position_error[0, a]) < float(before)
 
 
+def test_problems_are_independent_of_their_batch(sk):
+    """Each problem's fit is the one it gets alone: a problem that converges early leaves the
+    batch (it is not iterated further while a harder one goes on), and one that needs more
+    iterations is not cut short by its easy neighbours. Rotation targets and a per-problem prior
+    included (they follow the problems through the working set)."""
+    th, g = _poses(sk, 6, 4)
+    kin = sk(th)
+    scale = torch.tensor([0.0, 1e-3, 0.05, 0.2, 0.4, 0.6], dtype=torch.float64)[:, None]
+    start = sk.clamp(th + scale * torch.randn(th.shape, generator=g, dtype=torch.float64))
+    target = kin.positions + 0.01 * torch.randn(kin.positions.shape, generator=g,
+                                                dtype=torch.float64)
+    joints = list(range(sk.num_joints))
+    rj = [sk.joint_index(n) for n in ("l_elbow", "r_knee", "spine")]
+    kw = dict(target_rotations=kin.rotations[:, rj], rotation_joints=rj, iterations=80,
+              prior_weight=1e-3)
+    batch = fit_pose_lm(sk, start, target, joints, **kw)
+    alone = [fit_pose_lm(sk, start[i:i + 1], target[i:i + 1], joints,
+                         **{**kw, "target_rotations": kin.rotations[i:i + 1, rj]})
+             for i in range(6)]
+    iters = [a.iterations for a in alone]
+    assert min(iters) < max(iters) and batch.iterations == max(iters)
+    for i, a in enumerate(alone):
+        assert torch.allclose(batch.theta[i], a.theta[0], atol=1e-12, rtol=0), i
+        assert torch.allclose(batch.cost[i], a.cost[0], atol=1e-15, rtol=1e-12), i
+        assert torch.allclose(batch.rotation_error[i], a.rotation_error[0], atol=1e-12), i
+
+
 def test_exceptions(sk):
     th = sk.zero_pose((2,))
     with pytest.raises(ValueError, match="target_positions: expected shape"):

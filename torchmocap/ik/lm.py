@@ -5,7 +5,9 @@ Theta") and the per-frame ground-truth fit of subject fitting. Every problem in 
 independently with its own damping, using the skeleton's analytic Jacobian (REFERENCE §10: an
 autograd Jacobian costs 12-14x more per iteration). Box constraints are handled by projection
 onto the joint limits after each step; unobservable directions (a shoulder twist with a straight
-elbow, ...) are held by a small pull towards the prior mean.
+elbow, ...) are held by a small pull towards the prior mean. A problem leaves the batch once it has
+converged, so each problem's result is the one it gets alone and a batch costs what its problems
+need, not its slowest problem's iterations times the batch size.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ class LMResult:
         rotation_error: ``(B, K)`` angle between each targeted frame and its target (radians), or
             ``None`` without rotation targets.
         cost: ``(B,)`` final weighted least-squares cost.
-        iterations: number of iterations run.
+        iterations: number of iterations run (the largest over the batch).
     """
 
     theta: torch.Tensor
@@ -65,6 +67,15 @@ def _residuals(sk, theta, tp, pj, pw, tr, rj, rw, prior, lw, with_jac):
     return r, J, e_p, e_r
 
 
+def _subset(args, ids: torch.Tensor, B: int):
+    """The per-problem arguments of :func:`_residuals` for the problems ``ids`` of ``B``."""
+    if ids.numel() == B:
+        return args
+    tp, pj, pw, tr, rj, rw, prior, lw = args
+    return (tp[ids], pj, pw, None if tr is None else tr[ids], rj, rw,
+            prior[ids] if prior.dim() == 2 else prior, lw)
+
+
 def fit_pose_lm(
     skeleton: Skeleton,
     theta0: torch.Tensor,
@@ -94,7 +105,8 @@ def fit_pose_lm(
         prior_weight: pull towards ``prior`` (default ``theta0``) per DoF, in residual units.
         iterations: maximum LM iterations.
         damping: initial Marquardt damping (scaled per problem).
-        tol: stop when every problem's relative cost decrease is below this.
+        tol: a problem stops (and leaves the batch) once an accepted step lowers its cost by
+            less than this fraction.
     Returns:
         :class:`LMResult`.
     """
@@ -131,6 +143,11 @@ def fit_pose_lm(
     r, J, _, _ = _residuals(skeleton, theta, *args, with_jac=True)
     cost = (r * r).sum(1)
     eye = torch.eye(D, dtype=dtype, device=device)
+    # working set: a problem leaves the batch once it has converged (an accepted step lowered
+    # its cost by less than ``tol`` relative) or stalled (damping at its cap)
+    out = theta.clone()
+    out_cost = cost.clone()
+    ids = torch.arange(B, device=device)
     it = 0
     for it in range(1, iterations + 1):  # noqa: B007 (read after the loop)
         JtJ = J.transpose(1, 2) @ J
@@ -139,18 +156,30 @@ def fit_pose_lm(
         A = JtJ + mu[:, None, None] * (torch.diag_embed(diag) + 1e-9 * eye)
         step = torch.linalg.solve(A, -g)
         cand = torch.maximum(torch.minimum(theta + step, hi), lo)
-        r_new, _, _, _ = _residuals(skeleton, cand, *args, with_jac=False)
+        sub = _subset(args, ids, B)
+        r_new, _, _, _ = _residuals(skeleton, cand, *sub, with_jac=False)
         cost_new = (r_new * r_new).sum(1)
         better = cost_new < cost
         rel = (cost - cost_new).clamp_min(0) / cost.clamp_min(1e-30)
         theta = torch.where(better[:, None], cand, theta)
         mu = torch.where(better, (mu / 3).clamp_min(1e-9), (mu * 4).clamp_max(1e9))
-        done = bool(((rel < tol) & better).all()) or bool((mu >= 1e9).all())
+        done = ((rel < tol) & better) | (mu >= 1e9)
         if better.any():
-            r, J, _, _ = _residuals(skeleton, theta, *args, with_jac=True)
-            cost = (r * r).sum(1)
-        if done:
+            # the accepted candidates' Jacobians (the rejected keep theirs)
+            a = better.nonzero().squeeze(1)
+            ra, Ja, _, _ = _residuals(skeleton, theta[a], *_subset(args, ids[a], B),
+                                      with_jac=True)
+            r = r.index_copy(0, a, ra)
+            J = J.index_copy(0, a, Ja)
+            cost = cost.index_copy(0, a, (ra * ra).sum(1))
+        if it == iterations or bool(done.all()):
+            out[ids], out_cost[ids] = theta, cost
             break
+        if bool(done.any()):
+            out[ids[done]], out_cost[ids[done]] = theta[done], cost[done]
+            keep = ~done
+            ids, theta, mu, r, J, cost = (t[keep] for t in (ids, theta, mu, r, J, cost))
+    theta, cost = out, out_cost
     _, _, e_p, e_r = _residuals(skeleton, theta, *args, with_jac=False)
     return LMResult(
         theta=theta,
