@@ -72,6 +72,21 @@ def test_in_process_run_writes_outputs_and_skips_when_up_to_date(tmp_path):
     assert m2["num_particles"] == 31 and m2["fingerprint"] != saved["fingerprint"]
 
 
+def test_smoothed_run_reports_the_filtered_errors_beside(tmp_path):
+    import numpy as np
+
+    cfg = _compose(["tracker=kjs", "+smoother@tracker.smoother=viterbi", "data.clip.frames=5",
+                    "tracker.num_particles=24", "tracker.inference.components=3",
+                    "progress=false", "overlays=0", "glb.enabled=false"])
+    m = run(cfg, tmp_path)
+    assert m["smoother"]["name"] == "viterbi" and 0 <= m["smoother"]["changed_frames"] <= 4
+    assert set(m["filtered"]) == {"orientation_error_deg", "mpjpe_mm"}
+    z = np.load(tmp_path / "track.npz")
+    assert z["theta_filtered"].shape == z["theta"].shape == (5, 31)
+    if m["smoother"]["changed_frames"] == 0:
+        assert m["filtered"]["mpjpe_mm"] == pytest.approx(m["mpjpe_mm"]["mean"])
+
+
 def test_energy_vs_truth_diagnostic(tmp_path):
     cfg = _compose([*SMALL, "diagnostics.energy_vs_truth=true", "tracker=g"])
     m = run(cfg, tmp_path)

@@ -136,10 +136,19 @@ def finish(cfg, out: Path, seq, runtime, tracker, track, fingerprint: str,
         **(extra or {}),
     }
     arrays = {"theta": track.theta.numpy(), "dof_names": np.array(sk.dof_names)}
+    smoothing = track.infos[0].get("smoother") if isinstance(track.infos[0], dict) else None
+    if track.filtered is not None:  # theta is smoothed; the filter's own estimates beside it
+        arrays["theta_filtered"] = track.filtered.numpy()
+        if smoothing:
+            metrics["smoother"] = {k: v for k, v in smoothing.items() if k != "modes"}
     if seq.ground_truth is not None:
         errors = _errors(seq, sk, track.theta)
         metrics.update(errors.pop("summary"))
         arrays.update({k: v.numpy() for k, v in errors.items()})
+        if track.filtered is not None:
+            f = _errors(seq, sk, track.filtered)["summary"]
+            metrics["filtered"] = {"orientation_error_deg": f["orientation_error_deg"]["mean"],
+                                   "mpjpe_mm": f["mpjpe_mm"]["mean"]}
         if seq.ground_truth.markers is not None:
             metrics["marker_error_mm"] = _marker_error(seq, runtime, track.theta)
         hyp = _hypotheses(seq, sk, track.infos)

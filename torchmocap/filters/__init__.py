@@ -82,6 +82,12 @@ from torchmocap.filters.resampling import (
     systematic_resample,
 )
 from torchmocap.filters.sir import SIRResult, SIRStep, sir_filter, sir_step
+from torchmocap.filters.smoothing import (
+    Smoother,
+    ViterbiSmoother,
+    temporal_log_prior,
+    viterbi_path,
+)
 from torchmocap.filters.tracker import (
     CheckpointError,
     MissingObservationError,
@@ -123,6 +129,7 @@ __all__ = [
     "SIRInference",
     "SIRResult",
     "SIRStep",
+    "Smoother",
     "ShrinkingDiffusion",
     "SpreadDiffusion",
     "StratifiedResampler",
@@ -130,6 +137,7 @@ __all__ = [
     "Track",
     "TrackState",
     "Tracker",
+    "ViterbiSmoother",
     "WeightedMeanEstimator",
     "angles_from_matrix",
     "anneal",
@@ -164,5 +172,7 @@ __all__ = [
     "skeleton_rotation_groups",
     "stratified_resample",
     "systematic_resample",
+    "temporal_log_prior",
+    "viterbi_path",
     "weighted_mean",
 ]

@@ -343,10 +343,11 @@ def track_groups(groups: Sequence[BatchGroup], progress: bool = True,
             for cb in callbacks:
                 cb(states, infos)
     tracks = []
-    for st in states:
+    for g, st in zip(groups, states):
         secs = [i["seconds"] for i in st.infos[1:] if "seconds" in i]
-        tracks.append(Track(theta=torch.stack(st.estimates), infos=st.infos,
-                            seconds_per_frame=float(sum(secs) / max(len(secs), 1))))
+        tracks.append(g.tracker.finish(Track(
+            theta=torch.stack(st.estimates), infos=st.infos,
+            seconds_per_frame=float(sum(secs) / max(len(secs), 1)))))
     return tracks
 
 

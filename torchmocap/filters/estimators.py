@@ -28,6 +28,8 @@ import math
 import torch
 from torch import nn
 
+from torchmocap.filters.smoothing import temporal_log_prior
+
 __all__ = [
     "BestParticleEstimator",
     "Estimator",
@@ -182,13 +184,11 @@ class TemporalMapEstimator(Estimator):
     def log_scores(self, particles: torch.Tensor, weights: torch.Tensor,
                    prediction: torch.Tensor) -> torch.Tensor:
         """``(P,)`` log weight plus log temporal prior (up to a constant) of each particle."""
-        d = particles - prediction.to(particles)
-        rot = torch.ones(d.shape[-1], dtype=torch.bool, device=d.device)
+        rot = torch.ones(particles.shape[-1], dtype=torch.bool, device=particles.device)
         rot[self.translation_dofs] = False
-        d = torch.where(rot, torch.remainder(d + math.pi, 2 * math.pi) - math.pi, d)
-        std = torch.where(rot, self.rotation_std, self.translation_std).to(d)
-        log_w = torch.log(weights.to(torch.float64).clamp_min(1e-300))
-        return log_w - 0.5 * ((d / std) ** 2).sum(-1).to(torch.float64)
+        prior = temporal_log_prior(particles - prediction.to(particles), rot, self.rotation_std,
+                                   self.translation_std)
+        return torch.log(weights.to(torch.float64).clamp_min(1e-300)) + prior
 
     def forward(self, particles, weights, context=None):
         _check(particles, weights)

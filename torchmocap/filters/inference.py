@@ -77,7 +77,14 @@ class InferenceResult:
 
 
 class Inference(nn.Module):
-    """Base class of per-frame inference algorithms (see the module docstring)."""
+    """Base class of per-frame inference algorithms (see the module docstring).
+
+    ``keeps_hypotheses``: the inference records its kept modes per frame
+    (``info["hypotheses"]``, ``"hypothesis_weights"``, ``"mode_energy"``), which a
+    :class:`~torchmocap.filters.smoothing.ViterbiSmoother` reads.
+    """
+
+    keeps_hypotheses = False
 
     def forward(self, energy, proposal, estimator, context, num: int,
                 generator: torch.Generator | None = None) -> InferenceResult:

@@ -421,6 +421,8 @@ class MixtureInference(Inference):
         lower, upper: box bounds without a skeleton.
     """
 
+    keeps_hypotheses = True
+
     def __init__(self, skeleton=None, components: int = 8, layers: int = 1,
                  iterations: int = 20, optimiser: str = "auto", hessian: str = "auto",
                  merge_distance: float | None = None, merge_space: str = "auto",

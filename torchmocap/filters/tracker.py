@@ -36,6 +36,7 @@ from torch import nn
 
 from torchmocap.filters.estimators import Estimator
 from torchmocap.filters.inference import Inference
+from torchmocap.filters.smoothing import Smoother
 from torchmocap.likelihoods.base import FrameEnergy, Likelihood
 from torchmocap.proposals.base import Proposal, ProposalContext
 
@@ -86,14 +87,18 @@ class Track:
     """Output of :meth:`Tracker.run`.
 
     Attributes:
-        theta: ``(T, D)`` estimates (frame 0 is the initial pose).
+        theta: ``(T, D)`` estimates (frame 0 is the initial pose); smoothed when the tracker
+            has a ``smoother``.
         infos: per-frame diagnostics (ESS and beta per layer, timings, proposal statistics).
         seconds_per_frame: mean tracking time of frames 1..T-1.
+        filtered: ``(T, D)`` the filtered (per-frame) estimates when ``theta`` is smoothed,
+            else ``None``.
     """
 
     theta: torch.Tensor
     infos: list
     seconds_per_frame: float
+    filtered: torch.Tensor | None = None
 
 
 def _check_component(obj, kind, name: str):
@@ -150,13 +155,17 @@ class Tracker(nn.Module):
             (anthropometric) radii is biased by them, and the radii fitted at a biased pose
             are too; each pass reduces both.
         refit_scale: factor on the proposal's spread of the refit passes (the pose is close).
+        smoother: optional :class:`~torchmocap.filters.smoothing.Smoother` applied to the
+            finished track (:meth:`run`): ``Track.theta`` is then the smoothed track and
+            ``Track.filtered`` the per-frame estimates (which alone feed the prediction).
     """
 
     def __init__(self, skeleton, predictor, proposal: Proposal, likelihood: Likelihood,
                  inference: Inference, estimator: Estimator, num_particles: int = 200,
                  manifold=None, seed: int = 0, name: str = "tracker",
                  refine_first_frame: bool = False, clamp_estimate: bool = True,
-                 body_fit=None, refit_passes: int = 0, refit_scale: float = 0.25) -> None:
+                 body_fit=None, refit_passes: int = 0, refit_scale: float = 0.25,
+                 smoother: Smoother | None = None) -> None:
         super().__init__()
         if isinstance(refit_passes, bool) or not isinstance(refit_passes, int) \
                 or refit_passes < 0:
@@ -188,6 +197,10 @@ class Tracker(nn.Module):
         if body_fit is not None and not callable(body_fit):
             raise TypeError(f"body_fit: expected a callable, got {type(body_fit).__name__}")
         self.body_fit = body_fit
+        self.smoother = None if smoother is None else _check_component(smoother, Smoother,
+                                                                        "smoother")
+        if smoother is not None:
+            smoother.check(self.inference)
 
     @property
     def dtype(self) -> torch.dtype:
@@ -439,8 +452,12 @@ class Tracker(nn.Module):
                     self.save_checkpoint(state, checkpoint, fingerprint)
                 break
         secs = [i["seconds"] for i in state.infos[1:] if "seconds" in i]
-        return Track(theta=torch.stack(state.estimates), infos=state.infos,
-                     seconds_per_frame=float(sum(secs) / max(len(secs), 1)))
+        return self.finish(Track(theta=torch.stack(state.estimates), infos=state.infos,
+                                 seconds_per_frame=float(sum(secs) / max(len(secs), 1))))
+
+    def finish(self, track: Track) -> Track:
+        """The track as returned: smoothed by the ``smoother`` if there is one."""
+        return track if self.smoother is None else self.smoother.smooth(track)
 
     # ------------------------------------------------------------------ checkpoints
     def save_checkpoint(self, state: TrackState, path: str, fingerprint: str | None = None

@@ -1,0 +1,180 @@
+"""Offline smoothing of a multi-hypothesis track: the most probable sequence of kept modes.
+
+A multi-hypothesis filter (:class:`~torchmocap.filters.MixtureInference`, the Sminchisescu &
+Triggs tracker) keeps ``K`` modes per frame — under monocular depth ambiguity often the
+mirror-image interpretations of the same image, which tie on the likelihood. Its per-frame
+estimate must choose among them from the past alone (:class:`~torchmocap.filters.
+TemporalMapEstimator`: the mode closest to the prediction); once it follows the wrong branch it
+has no reason to come back. With the whole clip recorded, the choice can use the future too:
+:class:`ViterbiSmoother` returns the mode sequence ``k_1 .. k_T`` maximising::
+
+    sum_t  e_t(k_t)  +  sum_t  log N(theta_t[k_t]; theta_{t-1}[k_{t-1}], diag sigma^2)
+
+— the MAP trajectory of a hidden Markov model whose states are the kept modes, with emission
+``e_t(k) = -V_t(theta_t[k])`` (the mode's energy: negative log-likelihood; or its filter weight
+``log w_t(k)``, which already holds the filter's prior) and the constant-position Gaussian
+transition of :class:`~torchmocap.filters.TemporalMapEstimator` (rotation differences wrapped to
+``(-pi, pi]``). Exact dynamic programming (Viterbi), ``O(T K^2 D)``. Frame 0 is the known initial
+pose. This is a fixed-interval smoother: it sees the future, so compare it with other smoothers,
+not with filters (the trackers' ``Track.filtered`` keeps the filtered estimates).
+
+Functional core: :func:`temporal_log_prior`, :func:`viterbi_path`; module:
+:class:`ViterbiSmoother` (``tracker.smoother``; Hydra: ``+smoother@tracker.smoother=viterbi``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+__all__ = ["Smoother", "ViterbiSmoother", "temporal_log_prior", "viterbi_path"]
+
+EMISSIONS = ("energy", "weights")
+
+
+def temporal_log_prior(diff: torch.Tensor, rotation: torch.Tensor, rotation_std: float,
+                       translation_std: float) -> torch.Tensor:
+    """``-½ Σ_d (δ_d / σ_d)²`` over the last dimension of pose differences ``diff (..., D)``:
+    the log of a Gaussian temporal prior up to a constant. ``rotation (D,)`` bool marks the
+    rotation DoFs (their differences are wrapped to ``(-π, π]``, ``σ = rotation_std`` radians);
+    the others are translations (``σ = translation_std`` metres). Returns ``(...)`` float64."""
+    rot = rotation.to(diff.device)
+    d = torch.where(rot, torch.remainder(diff + math.pi, 2 * math.pi) - math.pi, diff)
+    std = torch.where(rot, torch.tensor(rotation_std, dtype=d.dtype, device=d.device),
+                      torch.tensor(translation_std, dtype=d.dtype, device=d.device))
+    return -0.5 * ((d / std) ** 2).sum(-1).to(torch.float64)
+
+
+def viterbi_path(emissions: Sequence[torch.Tensor], transition) -> tuple[list[int], float]:
+    """Exact MAP state sequence of a chain with a varying number of states per step.
+
+    Args:
+        emissions: ``T`` tensors ``(K_t,)`` of log emission scores (``K_t >= 1``, finite).
+        transition: ``transition(t) -> (K_{t-1}, K_t)`` log transition scores into step ``t``
+            (``t >= 1``).
+
+    Returns:
+        ``(path, score)``: the state index per step and the path's total log score. Ties go to
+        the lowest index.
+    """
+    if not emissions:
+        raise ValueError("emissions: expected at least one step")
+    delta = emissions[0].to(torch.float64)
+    back = []
+    for t in range(1, len(emissions)):
+        s = delta[:, None] + transition(t).to(torch.float64)  # (K_{t-1}, K_t)
+        best, arg = s.max(0)
+        back.append(arg)
+        delta = best + emissions[t].to(torch.float64)
+    k = int(torch.argmax(delta))
+    score = float(delta[k])
+    path = [k]
+    for arg in reversed(back):
+        k = int(arg[k])
+        path.append(k)
+    return path[::-1], score
+
+
+class Smoother(nn.Module):
+    """Base class: ``smooth(track) -> track`` with the smoothed ``theta`` and the filtered
+    estimates in ``track.filtered``."""
+
+    def check(self, inference) -> None:
+        """Raise ``ValueError`` when ``inference`` does not record what this smoother reads
+        (called when a tracker is assembled, before any frame is tracked)."""
+
+    def smooth(self, track):
+        raise NotImplementedError
+
+
+class ViterbiSmoother(Smoother):
+    """The most probable sequence of the hypotheses a multi-hypothesis tracker kept per frame.
+
+    Args:
+        skeleton: the tracking model (its translation DoFs get ``translation_std``).
+        rotation_std_deg: ``σ`` of every rotation DoF's change per frame (degrees).
+        translation_std: ``σ`` of the root translation's change per frame (metres).
+        emission: ``"energy"`` (``-V`` of each mode: the likelihood alone, the transition being
+            the only temporal term) or ``"weights"`` (the filter's log weights).
+
+    The track's ``infos[t]`` (``t >= 1``) must hold ``hypotheses`` (``K_t x D``) and, per the
+    emission, ``mode_energy`` or ``hypothesis_weights`` — what
+    :class:`~torchmocap.filters.MixtureInference` records; other inferences raise ``ValueError``.
+    """
+
+    def __init__(self, skeleton=None, rotation_std_deg: float = 20.0,
+                 translation_std: float = 0.1, emission: str = "energy") -> None:
+        super().__init__()
+        for name, v in (("rotation_std_deg", rotation_std_deg),
+                        ("translation_std", translation_std)):
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
+                    or v <= 0:
+                raise ValueError(f"{name}: expected a finite number > 0, got {v!r}")
+        if emission not in EMISSIONS:
+            raise ValueError(f"emission: expected one of {EMISSIONS}, got {emission!r}")
+        self.rotation_std = math.radians(rotation_std_deg)
+        self.translation_std = float(translation_std)
+        self.emission = emission
+        self.translation_dofs = [] if skeleton is None else list(skeleton.translation_dofs)
+
+    def check(self, inference) -> None:
+        if not getattr(inference, "keeps_hypotheses", False):
+            raise ValueError(f"smoother: the Viterbi smoother needs an inference that keeps "
+                             f"several hypotheses per frame (inference=mixture), got "
+                             f"{type(inference).__name__}")
+
+    def candidates(self, track) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        """Per frame the hypotheses ``(K_t, D)`` and their log emission scores ``(K_t,)``
+        (frame 0: the track's first pose, score 0)."""
+        theta = track.theta
+        D = theta.shape[-1]
+        states = [theta[0:1].to(torch.float64)]
+        scores = [torch.zeros(1, dtype=torch.float64)]
+        key = "mode_energy" if self.emission == "energy" else "hypothesis_weights"
+        for t, info in enumerate(track.infos[1:], start=1):
+            if not isinstance(info, dict) or not info.get("hypotheses") or key not in info:
+                raise ValueError(f"track.infos[{t}]: no 'hypotheses' and '{key}' - the Viterbi "
+                                 "smoother needs an inference that keeps several hypotheses "
+                                 "per frame (inference=mixture)")
+            H = torch.as_tensor(info["hypotheses"], dtype=torch.float64)
+            v = torch.as_tensor(info[key], dtype=torch.float64)
+            if H.dim() != 2 or H.shape[1] != D or v.shape != (H.shape[0],):
+                raise ValueError(f"track.infos[{t}]: expected hypotheses (K, {D}) and {key} "
+                                 f"(K,), got {tuple(H.shape)} and {tuple(v.shape)}")
+            e = -v if self.emission == "energy" else torch.log(v.clamp_min(1e-300))
+            if not bool(torch.isfinite(H).all()) or not bool(torch.isfinite(e).all()):
+                raise ValueError(f"track.infos[{t}]: non-finite hypotheses or {key}")
+            states.append(H)
+            scores.append(e)
+        return states, scores
+
+    def path(self, track) -> tuple[torch.Tensor, list[int], float]:
+        """``(theta (T, D), chosen mode per frame, log score)`` of the MAP mode sequence."""
+        states, scores = self.candidates(track)
+        rot = torch.ones(states[0].shape[-1], dtype=torch.bool)
+        rot[self.translation_dofs] = False
+
+        def transition(t):
+            diff = states[t][None, :, :] - states[t - 1][:, None, :]
+            return temporal_log_prior(diff, rot, self.rotation_std, self.translation_std)
+
+        path, score = viterbi_path(scores, transition)
+        theta = torch.stack([states[t][k] for t, k in enumerate(path)])
+        return theta.to(track.theta.dtype), path, score
+
+    def smooth(self, track):
+        theta, path, _ = self.path(track)
+        smoothed = type(track)(theta=theta, infos=list(track.infos),
+                               seconds_per_frame=track.seconds_per_frame,
+                               filtered=track.theta)
+        smoothed.infos[0] = {**smoothed.infos[0], "smoother": {
+            "name": "viterbi", "modes": path,
+            "changed_frames": int((theta != track.theta).any(-1).sum())}}
+        return smoothed
+
+    def extra_repr(self) -> str:
+        return (f"rotation_std_deg={math.degrees(self.rotation_std):g}, "
+                f"translation_std={self.translation_std:g}, emission={self.emission!r}")
