@@ -15,7 +15,10 @@ seconds per frame, and — when ``metrics.json`` carries the mixture's hypothese
 ``mean``) — the MPJPE of the top-weighted and of the best hypothesis and the modes kept. The
 plot shows the per-frame MPJPE (from ``track.npz``, else ``mpjpe_mm.per_frame``, else the
 orientation error's ``per_frame``) of each tracker, averaged over seeds, one panel per clip.
-``--runs`` and ``--out`` point elsewhere (e.g. a tiny validation sweep).
+Runs made with a smoother (``+smoother@tracker.smoother=viterbi``) carry ``filtered``: the table
+then gives the smoothed and the filtered MPJPE side by side (the orientation error and the plot
+are the smoothed track's). ``--runs`` and ``--out`` point elsewhere (e.g. a tiny validation
+sweep).
 """
 
 from __future__ import annotations
@@ -84,6 +87,8 @@ def summarise(runs: dict) -> dict:
                "ori": _mean_spread([m["orientation_error_deg"]["mean"] for m in ms]),
                "spf": sum(m["seconds_per_frame"] for m in ms) / len(ms),
                "frames": ms[0]["frames"], "particles": ms[0].get("num_particles")}
+        if all(isinstance(m.get("filtered"), dict) for m in ms):  # smoothed runs
+            row["filtered"] = _mean_spread([m["filtered"]["mpjpe_mm"] for m in ms])
         hyp = [m.get("hypotheses") for m in ms]
         if all(isinstance(h, dict) for h in hyp):
             for k in ("mpjpe_top_mm", "mpjpe_best_mm", "modes"):
@@ -100,8 +105,10 @@ def summarise(runs: dict) -> dict:
 
 def markdown(table: dict, clips, trackers, missing: list[str]) -> str:
     has_h = any("mpjpe_best_mm" in r for r in table.values())
-    head = "| clip | tracker | MPJPE (mm) | orientation error (deg) |"
-    sep = "|---|---|---:|---:|"
+    has_f = any("filtered" in r for r in table.values())
+    head = ("| clip | tracker | MPJPE, smoothed (mm) | MPJPE, filtered (mm) |" if has_f
+            else "| clip | tracker | MPJPE (mm) |") + " orientation error (deg) |"
+    sep = "|---|---|---:|---:|" + ("---:|" if has_f else "")
     if has_h:
         head += " top hypothesis (mm) | best hypothesis (mm) | modes |"
         sep += "---:|---:|---:|"
@@ -117,8 +124,11 @@ def markdown(table: dict, clips, trackers, missing: list[str]) -> str:
             if r is None:
                 continue
             cells = [CLIPS.get(c, c), TRACKERS.get(t, t),
-                     f"{r['mpjpe'][0]:.1f} ± {r['mpjpe'][1]:.1f}",
-                     f"{r['ori'][0]:.2f} ± {r['ori'][1]:.2f}"]
+                     f"{r['mpjpe'][0]:.1f} ± {r['mpjpe'][1]:.1f}"]
+            if has_f:
+                f = r.get("filtered")
+                cells.append(f"{f[0]:.1f} ± {f[1]:.1f}" if f else "–")
+            cells.append(f"{r['ori'][0]:.2f} ± {r['ori'][1]:.2f}")
             if has_h:
                 for k in ("mpjpe_top_mm", "mpjpe_best_mm"):
                     cells.append(f"{r[k][0]:.1f} ± {r[k][1]:.1f}" if k in r else "–")
