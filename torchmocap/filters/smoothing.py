@@ -128,10 +128,10 @@ class ViterbiSmoother(Smoother):
 
     def candidates(self, track) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         """Per frame the hypotheses ``(K_t, D)`` and their log emission scores ``(K_t,)``
-        (frame 0: the track's first pose, score 0)."""
+        (frame 0: the track's first pose, score 0), float64 on the host."""
         theta = track.theta
         D = theta.shape[-1]
-        states = [theta[0:1].to(torch.float64)]
+        states = [theta[0:1].detach().cpu().to(torch.float64)]  # the infos' modes are on the host
         scores = [torch.zeros(1, dtype=torch.float64)]
         key = "mode_energy" if self.emission == "energy" else "hypothesis_weights"
         for t, info in enumerate(track.infos[1:], start=1):
@@ -163,7 +163,7 @@ class ViterbiSmoother(Smoother):
 
         path, score = viterbi_path(scores, transition)
         theta = torch.stack([states[t][k] for t, k in enumerate(path)])
-        return theta.to(track.theta.dtype), path, score
+        return theta.to(dtype=track.theta.dtype, device=track.theta.device), path, score
 
     def smooth(self, track):
         theta, path, _ = self.path(track)
