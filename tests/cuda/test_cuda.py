@@ -30,9 +30,10 @@ PRESETS = [
     ("hauberg_silhouette", "stereo", ["tracker.num_particles=32"]),
     ("hauberg_depth", "stereo", ["tracker.num_particles=32"]),
     ("kjs", "monocular", ["tracker.num_particles=16"]),
+    ("kjs", "monocular", ["tracker.num_particles=16", "+smoother@tracker.smoother=viterbi"]),
 ]
 IDS = ["p", "g", "gs", "rs", "p_sir", "ls", "hauberg_spatial", "hauberg_silhouette",
-       "hauberg_depth", "kjs"]
+       "hauberg_depth", "kjs", "kjs_viterbi"]
 
 
 @pytest.fixture(scope="module")
