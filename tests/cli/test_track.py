@@ -72,6 +72,34 @@ def test_in_process_run_writes_outputs_and_skips_when_up_to_date(tmp_path):
     assert m2["num_particles"] == 31 and m2["fingerprint"] != saved["fingerprint"]
 
 
+def test_run_reports_the_do_nothing_baseline_and_beats_it(tmp_path):
+    """``hold_first_pose``: the errors of keeping the first frame's pose (every tracker's start),
+    recomputed here from the saved truth; the tracker is below it on a moving clip."""
+    import numpy as np
+    import torch
+
+    from torchmocap.metrics import orientation_error_deg
+    from torchmocap.skeleton import human31
+
+    cfg = _compose(["data.clip.frames=10", "data.clip.fps=8", "tracker.num_particles=40",
+                    "tracker.inference.layers=4", "progress=false", "overlays=0",
+                    "data.scenario=clean"])
+    m = run(cfg, tmp_path)
+    held = m["hold_first_pose"]
+    z = np.load(tmp_path / "track.npz")
+    from torchmocap.cli.runs import load_sequence
+
+    sk = human31()  # bone rotations do not depend on the subject's bone lengths
+    vb = [sk.joint_index(b) for b in m["validation_bones"]]
+    gt = load_sequence(cfg, min_frames=2).ground_truth.rotations[1:, vb].float()
+    still = sk(torch.as_tensor(z["theta"][:1], dtype=torch.float32)).rotations[:, vb]
+    expected = float(orientation_error_deg(still.expand_as(gt), gt).mean())
+    assert held["orientation_error_deg"] == pytest.approx(expected, rel=1e-4)
+    assert held["mpjpe_mm"] > 40 and held["orientation_error_deg"] > 5  # the walk moves
+    assert m["mpjpe_mm"]["mean"] < 0.6 * held["mpjpe_mm"]
+    assert m["orientation_error_deg"]["mean"] < held["orientation_error_deg"]
+
+
 def test_smoothed_run_reports_the_filtered_errors_beside(tmp_path):
     import numpy as np
 

@@ -145,6 +145,11 @@ def finish(cfg, out: Path, seq, runtime, tracker, track, fingerprint: str,
         errors = _errors(seq, sk, track.theta)
         metrics.update(errors.pop("summary"))
         arrays.update({k: v.numpy() for k, v in errors.items()})
+        # the do-nothing tracker: the first frame's pose (every tracker's start) held throughout
+        held = _errors(seq, sk, track.theta[:1].expand_as(track.theta))["summary"]
+        metrics["hold_first_pose"] = {
+            "orientation_error_deg": held["orientation_error_deg"]["mean"],
+            "mpjpe_mm": held["mpjpe_mm"]["mean"]}
         if track.filtered is not None:
             f = _errors(seq, sk, track.filtered)["summary"]
             metrics["filtered"] = {"orientation_error_deg": f["orientation_error_deg"]["mean"],
@@ -542,6 +547,10 @@ def _print_summary(m: dict) -> None:
             ("seconds / frame", f"{m['seconds_per_frame']:.3f}"),
             ("orientation error (deg)", f"{o['mean']:.2f} +- {o['std']:.2f}"),
             ("MPJPE (mm)", f"{m['mpjpe_mm']['mean']:.1f} +- {m['mpjpe_mm']['std']:.1f}")]
+    held = m.get("hold_first_pose")
+    if held:
+        rows.append(("holding the first pose", f"{held['orientation_error_deg']:.2f} deg, "
+                                               f"{held['mpjpe_mm']:.1f} mm"))
     rows += [(f"  {b}", f"{v:.2f}") for b, v in o["per_bone"].items()]
     w = max(len(r[0]) for r in rows)
     for k, v in rows:
