@@ -98,6 +98,27 @@ def test_run_reports_the_do_nothing_baseline_and_beats_it(tmp_path):
     assert held["mpjpe_mm"] > 40 and held["orientation_error_deg"] > 5  # the walk moves
     assert m["mpjpe_mm"]["mean"] < 0.6 * held["mpjpe_mm"]
     assert m["orientation_error_deg"]["mean"] < held["orientation_error_deg"]
+    assert "held_dofs" not in m  # every DoF tracked
+
+
+def test_upper_body_tracker_on_a_walk_warns_that_the_held_torso_moves(tmp_path, capsys):
+    """An upper-body preset holds the torso and legs at the first frame: on a walk the truth
+    carries the root away, and the run says so instead of reporting the errors silently."""
+    import numpy as np
+
+    cfg = _compose(["tracker=hauberg_angular", "data.clip.frames=8", "data.clip.fps=6",
+                    "tracker.num_particles=16", "progress=false", "overlays=0",
+                    "glb.enabled=false"])
+    m = run(cfg, tmp_path)
+    z = np.load(tmp_path / "track.npz")
+    still = np.isclose(z["theta"], z["theta"][:1], rtol=1e-5, atol=1e-6).all(0)
+    gt = z["theta_gt"]
+    assert m["held_dofs"]["count"] == int(still.sum()) > 0
+    moved = np.linalg.norm(gt[:, :3] - gt[:1, :3], axis=-1).max()
+    assert still[:3].all() and m["held_dofs"]["truth_max_translation_m"] == pytest.approx(
+        moved, rel=1e-4) and moved > 0.5
+    err = capsys.readouterr().err
+    assert "warning: the tracker held" in err and "the root moves" in err
 
 
 def test_smoothed_run_reports_the_filtered_errors_beside(tmp_path):

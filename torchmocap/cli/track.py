@@ -145,6 +145,9 @@ def finish(cfg, out: Path, seq, runtime, tracker, track, fingerprint: str,
         errors = _errors(seq, sk, track.theta)
         metrics.update(errors.pop("summary"))
         arrays.update({k: v.numpy() for k, v in errors.items()})
+        held_dofs = _held_dofs(seq, sk, track.theta)
+        if held_dofs:
+            metrics["held_dofs"] = held_dofs
         # the do-nothing tracker: the first frame's pose (every tracker's start) held throughout
         held = _errors(seq, sk, track.theta[:1].expand_as(track.theta))["summary"]
         metrics["hold_first_pose"] = {
@@ -229,6 +232,42 @@ def _errors(seq, sk, theta) -> dict:
     summary["mpjpe_mm"]["per_frame"] = [round(float(v), 3) for v in mp]
     return {"summary": summary, "theta_gt": gt.theta, "orientation_error_deg": ori,
             "mpjpe_mm": mp}
+
+
+#: the truth's motion of the DoFs a tracker holds that makes the run warn (metres, degrees)
+HELD_WARN_TRANSLATION, HELD_WARN_ROTATION = 0.25, 30.0
+
+
+def _held_dofs(seq, sk, theta) -> dict | None:
+    """The DoFs the track never moved from the first frame (an upper-body tracker's torso and
+    legs, say) and how far the truth moves them over the clip; warns when it is far: the
+    errors of such a run measure the held DoFs, not the tracker."""
+    import torch
+
+    # (a weighted mean of equal values may differ from them in the last bits)
+    held = torch.isclose(theta, theta[:1], rtol=1e-5, atol=1e-6).all(0)
+    if not bool(held.any()):
+        return None
+    gt = seq.ground_truth.theta.to(theta.dtype).cpu()
+    trans = [d for d in sk.translation_dofs if held[d]]
+    rot = [d for d in range(sk.num_dofs) if held[d] and d not in set(sk.translation_dofs)]
+    move = float((gt[:, trans] - gt[:1, trans]).norm(dim=-1).amax()) if trans else 0.0
+    turn = torch.remainder(gt[:, rot] - gt[:1, rot] + math.pi, 2 * math.pi) - math.pi
+    turn = turn.abs().amax(0) if rot else torch.zeros(0)
+    deg = [math.degrees(float(v)) for v in turn]
+    worst = sorted((k for k in range(len(rot)) if deg[k] > HELD_WARN_ROTATION),
+                   key=lambda k: -deg[k])[:3]
+    out = {"count": int(held.sum()), "truth_max_translation_m": move,
+           "truth_max_rotation_deg": max(deg, default=0.0)}
+    if move > HELD_WARN_TRANSLATION or worst:
+        what = [f"the root moves {move:.2f} m"] if move > HELD_WARN_TRANSLATION else []
+        what += [f"{sk.dof_names[rot[k]]} turns {deg[k]:.0f} deg" for k in worst]
+        print(f"torchmocap-track: warning: the tracker held {out['count']} DoFs at the first "
+              f"frame's pose (e.g. an upper-body tracker's torso), but in this clip "
+              f"{', '.join(what)}; the errors measure that, not the tracking (a Hauberg "
+              "preset tracks the whole body with tracker.proposal.joints=all; "
+              "data.clip.in_place=true keeps the subject at its start)", file=sys.stderr)
+    return out
 
 
 def _marker_error(seq, runtime, theta) -> dict:
