@@ -40,6 +40,14 @@ def test_defaults():
     assert "file://conf" in cfg.hydra.searchpath if "hydra" in cfg else True
 
 
+def test_every_clip_setting_is_in_the_default_config():
+    """A documented ``data.clip`` key the config lacks cannot be set without ``+``."""
+    from torchmocap.data.loaders import CLIP_KEYS
+
+    assert set(_compose([]).data.clip) == CLIP_KEYS
+    assert _compose(["data.clip.in_place=true"]).data.clip.in_place is True
+
+
 def test_in_process_run_writes_outputs_and_skips_when_up_to_date(tmp_path):
     cfg = _compose(["data.clip.frames=6", "tracker.num_particles=30",
                     "tracker.inference.layers=3", "progress=false", "overlays=2",

@@ -13,7 +13,13 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-__all__ = ["DataConfigError", "bundled_clip_path", "check_seed", "synthesized_sequence"]
+__all__ = ["CLIP_KEYS", "DataConfigError", "bundled_clip_path", "check_seed",
+           "synthesized_sequence"]
+
+#: the settings of ``data.clip`` (every one is in ``conf/data/clip/bundled.yaml``, so each can
+#: be overridden on the command line without ``+``)
+CLIP_KEYS = frozenset({"name", "path", "asf", "skeleton_map", "fps", "skip_frames", "start",
+                       "frames", "in_place"})
 
 
 class DataConfigError(ValueError):
@@ -95,11 +101,9 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
     from torchmocap.data.subject import fit_subject
     from torchmocap.io import load_motion
 
-    allowed = {"name", "path", "asf", "skeleton_map", "fps", "skip_frames", "start", "frames",
-               "in_place"}
-    unknown = sorted(set(clip) - allowed)
+    unknown = sorted(set(clip) - CLIP_KEYS)
     if unknown:
-        raise DataConfigError(f"data.clip: unknown keys {unknown}; expected {sorted(allowed)}")
+        raise DataConfigError(f"data.clip: unknown keys {unknown}; expected {sorted(CLIP_KEYS)}")
     path = _path(clip.get("path"), "data.clip.path") or str(bundled_clip_path())
     asf = _path(clip.get("asf"), "data.clip.asf")
     smap = clip.get("skeleton_map")
