@@ -262,11 +262,13 @@ def _held_dofs(seq, sk, theta) -> dict | None:
     if move > HELD_WARN_TRANSLATION or worst:
         what = [f"the root moves {move:.2f} m"] if move > HELD_WARN_TRANSLATION else []
         what += [f"{sk.dof_names[rot[k]]} turns {deg[k]:.0f} deg" for k in worst]
+        hint = "a Hauberg preset tracks the whole body with tracker.proposal.joints=all"
+        if move > HELD_WARN_TRANSLATION:
+            hint += "; data.clip.in_place=true keeps the subject at its start"
         print(f"torchmocap-track: warning: the tracker held {out['count']} DoFs at the first "
               f"frame's pose (e.g. an upper-body tracker's torso), but in this clip "
-              f"{', '.join(what)}; the errors measure that, not the tracking (a Hauberg "
-              "preset tracks the whole body with tracker.proposal.joints=all; "
-              "data.clip.in_place=true keeps the subject at its start)", file=sys.stderr)
+              f"{', '.join(what)}; the errors measure that, not the tracking ({hint})",
+              file=sys.stderr)
     return out
 
 
