@@ -26,14 +26,15 @@ RESULTS = HERE / "results"
 
 ACTIVITIES = {"walking": "walking", "jumping": "jumping", "kicking": "kicking",
               "basketball": "basketball", "dancing": "dancing", "arm_rotation": "arm rotation"}
-METHODS = ["l", "ls", "g", "gs", "rs", "p", "p_fidelity", "p_prior"]
+METHODS = ["l", "ls", "g", "gs", "rs", "p", "p_fidelity", "p_prior", "p_prior_refined"]
 PAPER_FIG8 = {"p": "**10.78 ± 8.5**", "gs": "not in Fig. 8", "g": "above P (GL)",
               "rs": "not in Fig. 8", "ls": "above P", "l": "above P", "p_fidelity": "–",
-              "p_prior": "–"}
+              "p_prior": "–", "p_prior_refined": "–"}
 SEEDS = [0, 1, 2]
 #: column labels
 NAMES = {**{m: m.upper() for m in METHODS}, "p_fidelity": "P, fidelity options",
-         "p_prior": "P, fidelity + temporal prior"}
+         "p_prior": "P, fidelity + temporal prior",
+         "p_prior_refined": "P, fidelity + temporal prior + local refinement"}
 
 
 def load(figure: str, *parts: str) -> dict | None:

@@ -4,6 +4,7 @@ checkpoint/resume, missing modalities, what the tracker may see."""
 
 from __future__ import annotations
 
+import copy
 import math
 import sys
 from pathlib import Path
@@ -121,7 +122,7 @@ def test_p_beats_g_and_doing_nothing(walk):
 
 
 @pytest.mark.parametrize("preset", ["gs", "rs", "l", "ls", "p", "p_gaussian", "p_nonoise",
-                                    "p_fidelity", "p_refined", "p_prior"])
+                                    "p_fidelity", "p_refined", "p_prior", "p_prior_refined"])
 def test_presets_track_a_few_frames(walk, preset):
     ov = [] if preset in ("l", "ls") else ["tracker.num_particles=60",
                                           "tracker.inference.layers=6"]
@@ -133,7 +134,7 @@ def test_presets_track_a_few_frames(walk, preset):
 def test_presets_are_compositions_of_the_documented_components():
     cfgs = {p: tracker_config(p) for p in ("p", "p_gaussian", "p_nonoise", "g", "gs", "rs",
                                              "l", "ls", "real_frame", "p_fidelity",
-                                             "p_refined", "p_prior")}
+                                             "p_refined", "p_prior", "p_prior_refined")}
     assert cfgs["p"].proposal._target_ == "torchmocap.proposals.ManifoldProposal"
     assert cfgs["p"].proposal.noise._target_ == "torchmocap.proposals.VonMisesFisherNoise"
     assert cfgs["p_gaussian"].proposal.noise._target_.endswith("PassiveGaussianNoise")
@@ -164,6 +165,12 @@ def test_presets_are_compositions_of_the_documented_components():
             pri.inference.prior_mean) == (40.0, 0.1, "last_estimate")
     for key in ("proposal", "likelihood", "estimator", "predictor"):
         assert pri[key] == fid[key]
+    both = copy.deepcopy(cfgs["p_prior_refined"])  # p_refined + p_prior's prior, nothing else
+    for key in ("prior_std_deg", "prior_translation_std", "prior_mean"):
+        assert both.inference[key] == pri.inference[key]
+        both.inference[key] = ref.inference[key]
+    both.name = "p_refined"
+    assert both == ref
     for name, c in cfgs.items():
         assert c.name == name
 
