@@ -263,7 +263,7 @@ def fidelity() -> str:
 
 LONG_CLIPS = {"boxing_long": "boxing (CMU21 box-1)",
               "jumping_jack_long": "jumping jacks (CMU21)"}
-LONG_METHODS = ["ls", "p", "p_fidelity", "p_prior"]
+LONG_METHODS = ["ls", "p", "p_fidelity", "p_prior", "p_prior_refined"]
 
 
 def long() -> str:
