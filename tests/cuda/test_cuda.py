@@ -26,14 +26,16 @@ PRESETS = [
     ("rs", "studio", ["tracker.num_particles=32", "tracker.inference.layers=3"]),
     ("p", "studio", ["tracker.num_particles=64", "inference@tracker.inference=sir"]),
     ("ls", "studio", ["tracker.inference.iterations=5"]),
+    ("p_prior_refined", "studio", ["tracker.num_particles=64", "tracker.inference.layers=4",
+                                   "tracker.inference.refine.iterations=5"]),  # the default
     ("hauberg_spatial", "stereo", ["tracker.num_particles=32"]),
     ("hauberg_silhouette", "stereo", ["tracker.num_particles=32"]),
     ("hauberg_depth", "stereo", ["tracker.num_particles=32"]),
     ("kjs", "monocular", ["tracker.num_particles=16"]),
     ("kjs", "monocular", ["tracker.num_particles=16", "+smoother@tracker.smoother=viterbi"]),
 ]
-IDS = ["p", "g", "gs", "rs", "p_sir", "ls", "hauberg_spatial", "hauberg_silhouette",
-       "hauberg_depth", "kjs", "kjs_viterbi"]
+IDS = ["p", "g", "gs", "rs", "p_sir", "ls", "p_prior_refined", "hauberg_spatial",
+       "hauberg_silhouette", "hauberg_depth", "kjs", "kjs_viterbi"]
 
 
 @pytest.fixture(scope="module")
