@@ -183,6 +183,28 @@ class TestErrors:
         with pytest.raises(ValueError, match="method"):
             LocalOptimiser(method="sgd")
 
+    def test_a_registered_optimiser_is_dispatched_to_by_name(self, monkeypatch):
+        """``OPTIMISERS`` is the one table of methods: minimise_local, LocalOptimiser and
+        LocalInference accept a name once it is registered and refuse it otherwise."""
+        from torchmocap.filters import LocalInference, local
+        from torchmocap.skeleton import human31
+
+        calls = []
+
+        def fake(f, x0, lo, hi, it, history, lr, tol):
+            calls.append((it, history, lr, tol))
+            return local.OPTIMISERS["adam"](f, x0, lo, hi, it, history, lr, tol)
+
+        _, _, energy = _quadratic(3, 2, seed=1)
+        x0 = torch.zeros(3, 2, dtype=F64)
+        with pytest.raises(ValueError, match="method: expected one of \\['adam', 'lbfgs'\\]"):
+            LocalInference(human31(), method="fake")
+        monkeypatch.setitem(local.OPTIMISERS, "fake", fake)
+        minimise_local(energy, x0, method="fake", iterations=3, lr=0.5, history=4, tol=1e-6)
+        LocalOptimiser("fake", iterations=2)(energy, x0)
+        LocalInference(human31(), method="fake")
+        assert calls == [(3, 4, 0.5, 1e-6), (2, 10, 1e-2, 1e-9)]
+
     def test_module(self):
         m, _, energy = _quadratic(4, 3, seed=5)
         x0 = torch.zeros(4, 3, dtype=F64)

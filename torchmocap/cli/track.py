@@ -250,7 +250,7 @@ def _held_dofs(seq, sk, theta) -> dict | None:
         return None
     gt = seq.ground_truth.theta.to(theta.dtype).cpu()
     trans = [d for d in sk.translation_dofs if held[d]]
-    rot = [d for d in range(sk.num_dofs) if held[d] and d not in set(sk.translation_dofs)]
+    rot = [d for d in range(sk.num_dofs) if held[d] and d not in sk.translation_dofs]
     move = float((gt[:, trans] - gt[:1, trans]).norm(dim=-1).amax()) if trans else 0.0
     turn = torch.remainder(gt[:, rot] - gt[:1, rot] + math.pi, 2 * math.pi) - math.pi
     turn = turn.abs().amax(0) if rot else torch.zeros(0)

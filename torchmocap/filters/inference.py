@@ -37,7 +37,7 @@ from torch import nn
 
 from torchmocap.filters.annealed import anneal
 from torchmocap.filters.annealing import get_schedule
-from torchmocap.filters.local import minimise_local
+from torchmocap.filters.local import check_method, minimise_local
 from torchmocap.filters.resampling import get_resampler
 from torchmocap.filters.temporal_prior import TemporalPrior, temporal_prior_precision
 from torchmocap.proposals.base import ProposalContext
@@ -400,8 +400,7 @@ class LocalInference(Inference):
     def __init__(self, skeleton, method: str = "adam", iterations: int = 40, lr: float = 0.02,
                  starts: int = 1) -> None:
         super().__init__()
-        if method not in ("adam", "lbfgs"):
-            raise ValueError(f"method: expected 'adam' or 'lbfgs', got {method!r}")
+        check_method(method)  # one of minimise_local's OPTIMISERS
         for name, v in (("iterations", iterations), ("starts", starts)):
             if isinstance(v, bool) or not isinstance(v, int) or v < (0 if name == "iterations"
                                                                       else 1):

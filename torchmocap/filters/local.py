@@ -232,6 +232,20 @@ def _adam(
     return LocalResult(best_x, best_f, x.detach(), torch.stack(trace), converged, iterations)
 
 
+#: the optimisers of :func:`minimise_local` by name, each called as
+#: ``(energy, x0, lo, hi, iterations, history, lr, tol)`` (a new one registers here)
+OPTIMISERS: dict[str, Callable[..., LocalResult]] = {
+    "lbfgs": lambda f, x0, lo, hi, it, history, lr, tol: _lbfgs(f, x0, lo, hi, it, history, tol),
+    "adam": lambda f, x0, lo, hi, it, history, lr, tol: _adam(f, x0, lo, hi, it, lr, tol),
+}
+
+
+def check_method(method) -> None:
+    """Raise ``ValueError`` unless ``method`` names one of :data:`OPTIMISERS`."""
+    if method not in OPTIMISERS:
+        raise ValueError(f"method: expected one of {sorted(OPTIMISERS)}, got {method!r}")
+
+
 def minimise_local(
     energy: Energy,
     x0: torch.Tensor,
@@ -262,6 +276,7 @@ def minimise_local(
     Returns:
         :class:`LocalResult` (best point, its energy, last iterate, trace ``(I + 1, P)``).
     """
+    check_method(method)
     if not isinstance(x0, torch.Tensor) or not x0.is_floating_point():
         raise TypeError("x0: expected a floating-point torch.Tensor of shape (P, D)")
     if x0.dim() != 2 or x0.shape[0] < 1 or x0.shape[1] < 1:
@@ -281,19 +296,14 @@ def minimise_local(
     if bool((lo > hi).any()):
         raise ValueError("lower: must not exceed upper")
     fn = energy if decode is None else (lambda x: energy(decode(x)))
-    if method == "lbfgs":
-        return _lbfgs(fn, x0, lo, hi, iterations, history, tol)
-    if method == "adam":
-        return _adam(fn, x0, lo, hi, iterations, lr, tol)
-    raise ValueError(f"method: expected 'lbfgs' or 'adam', got {method!r}")
+    return OPTIMISERS[method](fn, x0, lo, hi, iterations, history, lr, tol)
 
 
 class LocalOptimiser:
     """Thin holder of :func:`minimise_local`'s settings: ``opt(energy, x0) -> LocalResult``."""
 
     def __init__(self, method: str = "lbfgs", iterations: int = 100, **kwargs) -> None:
-        if method not in ("lbfgs", "adam"):
-            raise ValueError(f"method: expected 'lbfgs' or 'adam', got {method!r}")
+        check_method(method)
         self.method = method
         self.iterations = iterations
         self.kwargs = kwargs
