@@ -149,6 +149,41 @@ class TestAdam:
         )
         assert torch.allclose(res.x, torch.tensor([[1.0, -1.0, 0.2]], dtype=F64), atol=1e-3)
 
+    @pytest.mark.parametrize("iterations", [0, 1, 7])
+    def test_one_evaluation_per_iterate_and_the_reference_iterates(self, iterations):
+        """Adam evaluates the energy once per iterate (``iterations + 1`` calls, the value taken
+        with the gradient doubles as the iterate's trace entry) and visits the iterates of a plain
+        ``torch.optim.Adam`` loop with clamping: trace, best point and last point match it."""
+        m, c, energy = _quadratic(5, 3, seed=2)
+        lo, hi = -0.5, 0.8
+        calls = []
+
+        def counted(x):
+            calls.append(x.requires_grad)
+            return energy(x)
+
+        x0 = torch.zeros(5, 3, dtype=F64)
+        res = minimise_local(counted, x0, method="adam", iterations=iterations, lr=0.1,
+                             lower=lo, upper=hi)
+        assert len(calls) == iterations + 1
+        x = x0.clone().requires_grad_(True)
+        opt = torch.optim.Adam([x], lr=0.1)
+        ref = []
+        for _ in range(iterations):
+            opt.zero_grad()
+            v = energy(x)
+            ref.append(v.detach())
+            v.sum().backward()
+            opt.step()
+            with torch.no_grad():
+                x.clamp_(lo, hi)
+        ref.append(energy(x).detach())
+        ref = torch.stack(ref)
+        torch.testing.assert_close(res.trace, ref, rtol=0, atol=0)
+        torch.testing.assert_close(res.final, x.detach(), rtol=0, atol=0)
+        torch.testing.assert_close(res.energy, ref.min(0).values, rtol=0, atol=0)
+        assert torch.equal(energy(res.x), res.energy)
+
 
 class TestErrors:
     def test_exception(self):

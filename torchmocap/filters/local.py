@@ -210,25 +210,37 @@ def _adam(
 ) -> LocalResult:
     x = torch.maximum(torch.minimum(x0.detach(), hi), lo).clone().requires_grad_(True)
     opt = torch.optim.Adam([x], lr=lr)
-    f, _ = _value_and_grad(energy, x)
-    trace = [f]
-    best_x, best_f = x.detach().clone(), f.clone()
-    prev = f
-    for _ in range(iterations):
-        opt.zero_grad()
-        with torch.enable_grad():
-            v = _value(energy, x, strict=True)
-            v.sum().backward()
-        opt.step()
-        with torch.no_grad():
-            x.copy_(torch.maximum(torch.minimum(x, hi), lo))
-            fn = _value(energy, x, strict=True)
-        trace.append(fn)
-        better = fn < best_f
-        best_x = torch.where(better[:, None], x.detach(), best_x)
-        best_f = torch.where(better, fn, best_f)
-        prev, f = f, fn
-    converged = (f - prev).abs() <= tol
+    # one evaluation per iterate: the value taken with the gradient at x_k is x_k's trace entry
+    # (no separate no-grad evaluation after each step), the last iterate is evaluated once more
+    trace: list[torch.Tensor] = []
+    best_x = best_f = None
+    for k in range(iterations + 1):
+        if k == iterations:
+            with torch.no_grad():
+                v = _value(energy, x, strict=True)
+        else:
+            opt.zero_grad()
+            with torch.enable_grad():
+                v = _value(energy, x, strict=True)
+                if not v.requires_grad:
+                    raise ValueError("energy: output does not depend differentiably on x")
+                v.sum().backward()
+            if k == 0 and not bool(torch.isfinite(x.grad).all()):
+                raise ValueError("energy: non-finite gradient")
+        f = v.detach()
+        trace.append(f)
+        if best_f is None:
+            best_x, best_f = x.detach().clone(), f.clone()
+        else:
+            better = f < best_f
+            best_x = torch.where(better[:, None], x.detach(), best_x)
+            best_f = torch.where(better, f, best_f)
+        if k < iterations:
+            opt.step()
+            with torch.no_grad():
+                x.copy_(torch.maximum(torch.minimum(x, hi), lo))
+    prev = trace[-2] if iterations > 0 else trace[-1]
+    converged = (trace[-1] - prev).abs() <= tol
     return LocalResult(best_x, best_f, x.detach(), torch.stack(trace), converged, iterations)
 
 
