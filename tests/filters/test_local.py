@@ -163,8 +163,9 @@ class TestAdam:
             return energy(x)
 
         x0 = torch.zeros(5, 3, dtype=F64)
-        res = minimise_local(counted, x0, method="adam", iterations=iterations, lr=0.1,
-                             lower=lo, upper=hi)
+        res = minimise_local(
+            counted, x0, method="adam", iterations=iterations, lr=0.1, lower=lo, upper=hi
+        )
         assert len(calls) == iterations + 1
         x = x0.clone().requires_grad_(True)
         opt = torch.optim.Adam([x], lr=0.1)
