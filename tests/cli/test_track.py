@@ -107,6 +107,16 @@ def test_run_reports_the_do_nothing_baseline_and_beats_it(tmp_path):
     assert m["mpjpe_mm"]["mean"] < 0.6 * held["mpjpe_mm"]
     assert m["orientation_error_deg"]["mean"] < held["orientation_error_deg"]
     assert "held_dofs" not in m  # every DoF tracked
+    # root-aligned MPJPE, recomputed from the saved estimate and the truth's joint positions
+    seq = load_sequence(cfg, min_frames=2)
+    sk_fit = seq.ground_truth.build_skeleton()
+    pos = sk_fit(torch.as_tensor(z["theta"], dtype=torch.float64)).positions[1:]
+    truth = seq.ground_truth.positions[1:].double()
+    rel = ((pos - pos[:, :1]) - (truth - truth[:, :1])).norm(dim=-1).mean(-1) * 1000
+    r = m["mpjpe_root_relative_mm"]
+    assert r["mean"] == pytest.approx(float(rel.mean()), rel=1e-3)
+    assert len(r["per_frame"]) == len(m["mpjpe_mm"]["per_frame"]) == 9
+    assert held["mpjpe_root_relative_mm"] < held["mpjpe_mm"]  # the walk carries the root away
 
 
 def test_upper_body_tracker_on_a_walk_warns_that_the_held_torso_moves(tmp_path, capsys):
@@ -137,7 +147,10 @@ def test_smoothed_run_reports_the_filtered_errors_beside(tmp_path):
                     "progress=false", "overlays=0", "glb.enabled=false"])
     m = run(cfg, tmp_path)
     assert m["smoother"]["name"] == "viterbi" and 0 <= m["smoother"]["changed_frames"] <= 4
-    assert set(m["filtered"]) == {"orientation_error_deg", "mpjpe_mm"}
+    assert set(m["filtered"]) == {"orientation_error_deg", "mpjpe_mm", "mpjpe_root_relative_mm"}
+    hyp = m["hypotheses"]
+    assert all(hyp["mpjpe_root_relative_best_mm"]["mean"] <= hyp[k]["mean"] + 1e-9
+               for k in ("mpjpe_root_relative_top_mm",))
     z = np.load(tmp_path / "track.npz")
     assert z["theta_filtered"].shape == z["theta"].shape == (5, 31)
     if m["smoother"]["changed_frames"] == 0:

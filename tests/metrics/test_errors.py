@@ -39,3 +39,29 @@ def test_mpjpe_and_summary():
     assert s["orientation_error_deg"]["mean"] == 3.0
     assert s["orientation_error_deg"]["per_bone"] == {"a": 2.0, "b": 4.0}
     assert s["mpjpe_mm"]["mean"] == pytest.approx(10.0)
+
+
+def test_root_aligned_mpjpe():
+    """``root=`` removes a global offset (a monocular camera's depth of the whole body) and
+    keeps the error of the pose itself: closed forms, and the global MPJPE is unchanged."""
+    g = torch.Generator().manual_seed(1)
+    tru = torch.randn(4, 5, 3, generator=g, dtype=torch.float64)
+    shift = torch.randn(4, 1, 3, generator=g, dtype=torch.float64)
+    assert mpjpe_mm(tru + shift, tru, root=0).abs().max() < 1e-9
+    assert torch.allclose(mpjpe_mm(tru + shift, tru), shift.norm(dim=-1)[:, 0] * 1000)
+    # one joint (not the root) off by 2 cm: the root-aligned error is 2 cm / 5 joints
+    est = tru + shift
+    est[:, 3] += torch.tensor([0.0, 0.02, 0.0], dtype=torch.float64)
+    assert mpjpe_mm(est, tru, root=0).tolist() == pytest.approx([4.0] * 4)
+    # the root itself off by 2 cm: every other joint is then 2 cm off after alignment
+    est = tru.clone()
+    est[:, 0] += torch.tensor([0.02, 0.0, 0.0], dtype=torch.float64)
+    assert mpjpe_mm(est, tru, root=0).tolist() == pytest.approx([16.0] * 4)
+    assert mpjpe_mm(est, tru, root=-5).tolist() == pytest.approx([16.0] * 4)
+    s = summarize_errors(torch.ones(4, 1), ["a"], mpjpe_mm(est, tru), mpjpe_mm(est, tru, root=0))
+    assert s["mpjpe_root_relative_mm"]["mean"] == pytest.approx(16.0)
+    assert "mpjpe_root_relative_mm" not in summarize_errors(torch.ones(4, 1), ["a"],
+                                                            mpjpe_mm(est, tru))
+    for bad in (5, -6, 1.0, True, "pelvis"):
+        with pytest.raises(ValueError, match="root"):
+            mpjpe_mm(est, tru, root=bad)

@@ -52,6 +52,7 @@ __all__ = [
 DEFAULT_METRICS = (
     "orientation_error_deg.mean",
     "mpjpe_mm.mean",
+    "mpjpe_root_relative_mm.mean",
     "marker_error_mm.mean",
     "silhouette_iou.mean",
     "ess_final_mean",

@@ -152,11 +152,13 @@ def finish(cfg, out: Path, seq, runtime, tracker, track, fingerprint: str,
         held = _errors(seq, sk, track.theta[:1].expand_as(track.theta))["summary"]
         metrics["hold_first_pose"] = {
             "orientation_error_deg": held["orientation_error_deg"]["mean"],
-            "mpjpe_mm": held["mpjpe_mm"]["mean"]}
+            "mpjpe_mm": held["mpjpe_mm"]["mean"],
+            "mpjpe_root_relative_mm": held["mpjpe_root_relative_mm"]["mean"]}
         if track.filtered is not None:
             f = _errors(seq, sk, track.filtered)["summary"]
             metrics["filtered"] = {"orientation_error_deg": f["orientation_error_deg"]["mean"],
-                                   "mpjpe_mm": f["mpjpe_mm"]["mean"]}
+                                   "mpjpe_mm": f["mpjpe_mm"]["mean"],
+                                   "mpjpe_root_relative_mm": f["mpjpe_root_relative_mm"]["mean"]}
         if seq.ground_truth.markers is not None:
             metrics["marker_error_mm"] = _marker_error(seq, runtime, track.theta)
         hyp = _hypotheses(seq, sk, track.infos)
@@ -225,17 +227,24 @@ def _errors(seq, sk, theta) -> dict:
     vb = [sk.joint_index(b) for b in val]
     ori = orientation_error_deg(kin.rotations[1:, vb], gt.rotations[1:, vb].float())
     mp = mpjpe_mm(kin.positions[1:], gt.positions[1:].float())
-    summary = {"validation_bones": val, **summarize_errors(ori, val, mp)}
+    mp_root = mpjpe_mm(kin.positions[1:], gt.positions[1:].float(), root=_root_joint(sk))
+    summary = {"validation_bones": val, **summarize_errors(ori, val, mp, mp_root)}
     summary["orientation_error_deg"]["per_frame"] = [round(float(v), 4) for v in ori.mean(1)]
     summary["orientation_error_deg"]["per_bone_frame"] = {
         b: [round(float(v), 4) for v in ori[:, k]] for k, b in enumerate(val)}
     summary["mpjpe_mm"]["per_frame"] = [round(float(v), 3) for v in mp]
+    summary["mpjpe_root_relative_mm"]["per_frame"] = [round(float(v), 3) for v in mp_root]
     return {"summary": summary, "theta_gt": gt.theta, "orientation_error_deg": ori,
             "mpjpe_mm": mp}
 
 
 #: the truth's motion of the DoFs a tracker holds that makes the run warn (metres, degrees)
 HELD_WARN_TRANSLATION, HELD_WARN_ROTATION = 0.25, 30.0
+
+
+def _root_joint(sk) -> int:
+    """Index of the skeleton's root joint (the one without a parent)."""
+    return next(j for j, p in enumerate(sk.parents) if p < 0)
 
 
 def _held_dofs(seq, sk, theta) -> dict | None:
@@ -288,22 +297,28 @@ def _marker_error(seq, runtime, theta) -> dict:
 
 
 def _hypotheses(seq, sk, infos) -> dict:
-    """MPJPE of the top-weighted and of the best of the hypotheses a multi-hypothesis inference
-    keeps per frame (``info["hypotheses"]``, ``info["hypothesis_weights"]``), and their count."""
+    """MPJPE (global and root-aligned) of the top-weighted and of the best of the hypotheses a
+    multi-hypothesis inference keeps per frame (``info["hypotheses"]``,
+    ``info["hypothesis_weights"]``), and their count."""
     import torch
 
     from torchmocap.metrics import mpjpe_mm
 
-    top, best, modes = [], [], []
+    top, best, top_root, best_root, modes = [], [], [], [], []
     for t, info in enumerate(infos):
         if t == 0 or not isinstance(info, dict) or not info.get("hypotheses"):
             continue
         H = torch.as_tensor(info["hypotheses"], dtype=torch.float32)
         w = torch.as_tensor(info.get("hypothesis_weights") or [1.0] * H.shape[0])
         truth = seq.ground_truth.positions[t].float()
-        err = mpjpe_mm(sk(H).positions, truth.expand(H.shape[0], -1, -1))
-        top.append(float(err[int(torch.argmax(w))]))
+        pos, ref = sk(H).positions, truth.expand(H.shape[0], -1, -1)
+        err = mpjpe_mm(pos, ref)
+        err_root = mpjpe_mm(pos, ref, root=_root_joint(sk))
+        k = int(torch.argmax(w))
+        top.append(float(err[k]))
         best.append(float(err.min()))
+        top_root.append(float(err_root[k]))
+        best_root.append(float(err_root.min()))
         modes.append(int(H.shape[0]))
     if not top:
         return {}
@@ -312,6 +327,8 @@ def _hypotheses(seq, sk, infos) -> dict:
         return {"mean": sum(v) / len(v), "per_frame": [round(x, 3) for x in v]}
 
     return {"mpjpe_top_mm": stats(top), "mpjpe_best_mm": stats(best),
+            "mpjpe_root_relative_top_mm": stats(top_root),
+            "mpjpe_root_relative_best_mm": stats(best_root),
             "modes": {"mean": sum(modes) / len(modes), "per_frame": modes}}
 
 
@@ -588,6 +605,9 @@ def _print_summary(m: dict) -> None:
             ("seconds / frame", f"{m['seconds_per_frame']:.3f}"),
             ("orientation error (deg)", f"{o['mean']:.2f} +- {o['std']:.2f}"),
             ("MPJPE (mm)", f"{m['mpjpe_mm']['mean']:.1f} +- {m['mpjpe_mm']['std']:.1f}")]
+    r = m.get("mpjpe_root_relative_mm")
+    if r:
+        rows.append(("MPJPE, root-aligned (mm)", f"{r['mean']:.1f} +- {r['std']:.1f}"))
     held = m.get("hold_first_pose")
     if held:
         rows.append(("holding the first pose", f"{held['orientation_error_deg']:.2f} deg, "
