@@ -12,7 +12,9 @@ table gives the MPJPE of the estimate (mean over frames and seeds, ± the spread
 means), the validation-bone orientation error (Pons-Moll eq. 19, bones spine, shoulders, hips),
 seconds per frame, and — when ``metrics.json`` carries the mixture's hypotheses
 (``hypotheses.mpjpe_top_mm``, ``hypotheses.mpjpe_best_mm``, ``hypotheses.modes``, each with a
-``mean``) — the MPJPE of the top-weighted and of the best hypothesis and the modes kept. The
+``mean``) — the MPJPE of the top-weighted and of the best hypothesis and the modes kept; runs
+that carry ``mpjpe_root_relative_mm`` add the root-aligned MPJPE (pelvis at the origin in both
+poses: the pose without the whole body's global offset, which one camera sees worst). The
 plot shows the per-frame MPJPE (from ``track.npz``, else ``mpjpe_mm.per_frame``, else the
 orientation error's ``per_frame``) of each tracker, averaged over seeds, one panel per clip.
 Runs made with a smoother (``+smoother@tracker.smoother=viterbi``) carry ``filtered``: the table
@@ -87,11 +89,17 @@ def summarise(runs: dict) -> dict:
                "ori": _mean_spread([m["orientation_error_deg"]["mean"] for m in ms]),
                "spf": sum(m["seconds_per_frame"] for m in ms) / len(ms),
                "frames": ms[0]["frames"], "particles": ms[0].get("num_particles")}
+        if all("mpjpe_root_relative_mm" in m for m in ms):
+            row["root"] = _mean_spread([m["mpjpe_root_relative_mm"]["mean"] for m in ms])
         if all(isinstance(m.get("filtered"), dict) for m in ms):  # smoothed runs
             row["filtered"] = _mean_spread([m["filtered"]["mpjpe_mm"] for m in ms])
+            if all("mpjpe_root_relative_mm" in m["filtered"] for m in ms):
+                row["root_filtered"] = _mean_spread(
+                    [m["filtered"]["mpjpe_root_relative_mm"] for m in ms])
         hyp = [m.get("hypotheses") for m in ms]
         if all(isinstance(h, dict) for h in hyp):
-            for k in ("mpjpe_top_mm", "mpjpe_best_mm", "modes"):
+            for k in ("mpjpe_top_mm", "mpjpe_best_mm", "mpjpe_root_relative_top_mm",
+                      "mpjpe_root_relative_best_mm", "modes"):
                 vals = [h[k]["mean"] if isinstance(h.get(k), dict) else h.get(k) for h in hyp]
                 if all(isinstance(v, (int, float)) for v in vals):
                     row[k] = _mean_spread([float(v) for v in vals])
@@ -106,12 +114,24 @@ def summarise(runs: dict) -> dict:
 def markdown(table: dict, clips, trackers, missing: list[str]) -> str:
     has_h = any("mpjpe_best_mm" in r for r in table.values())
     has_f = any("filtered" in r for r in table.values())
+    has_r = any("root" in r for r in table.values())
     head = ("| clip | tracker | MPJPE, smoothed (mm) | MPJPE, filtered (mm) |" if has_f
-            else "| clip | tracker | MPJPE (mm) |") + " orientation error (deg) |"
-    sep = "|---|---|---:|---:|" + ("---:|" if has_f else "")
+            else "| clip | tracker | MPJPE (mm) |")
+    sep = "|---|---|---:|" + ("---:|" if has_f else "")
+    if has_r:
+        head += (" root-aligned, smoothed (mm) | root-aligned, filtered (mm) |" if has_f
+                 else " root-aligned MPJPE (mm) |")
+        sep += "---:|" + ("---:|" if has_f else "")
+    head += " orientation error (deg) |"
+    sep += "---:|"
     if has_h:
-        head += " top hypothesis (mm) | best hypothesis (mm) | modes |"
-        sep += "---:|---:|---:|"
+        head += " top hypothesis (mm) | best hypothesis (mm) |"
+        sep += "---:|---:|"
+        if has_r:
+            head += " best hypothesis, root-aligned (mm) |"
+            sep += "---:|"
+        head += " modes |"
+        sep += "---:|"
     head += " s / frame | seeds |"
     sep += "---:|---:|"
     lines = ["# Sminchisescu & Triggs (2003), §5.2 — monocular tracking", "",
@@ -128,9 +148,14 @@ def markdown(table: dict, clips, trackers, missing: list[str]) -> str:
             if has_f:
                 f = r.get("filtered")
                 cells.append(f"{f[0]:.1f} ± {f[1]:.1f}" if f else "–")
+            if has_r:
+                for k in ("root", "root_filtered")[: 2 if has_f else 1]:
+                    cells.append(f"{r[k][0]:.1f} ± {r[k][1]:.1f}" if k in r else "–")
             cells.append(f"{r['ori'][0]:.2f} ± {r['ori'][1]:.2f}")
             if has_h:
-                for k in ("mpjpe_top_mm", "mpjpe_best_mm"):
+                keys = ["mpjpe_top_mm", "mpjpe_best_mm"]
+                keys += ["mpjpe_root_relative_best_mm"] if has_r else []
+                for k in keys:
                     cells.append(f"{r[k][0]:.1f} ± {r[k][1]:.1f}" if k in r else "–")
                 cells.append(f"{r['modes'][0]:.1f}" if "modes" in r else "–")
             cells += [f"{r['spf']:.2f}", str(r["seeds"])]
