@@ -112,3 +112,66 @@ def test_feature_in_place_holds_the_root_and_keeps_the_rest():
 def test_exception_in_place_must_be_a_bool():
     with pytest.raises(DataConfigError, match=r"^data\.clip\.in_place: expected true or false"):
         synthesized_sequence(_clip(in_place="yes"), "clean", FAST, seed=0)
+
+
+def _human31_yaml(tmp_path, edit):
+    from importlib import resources
+
+    import yaml
+
+    spec = yaml.safe_load(resources.files("torchmocap.skeleton.presets")
+                          .joinpath("human31.yaml").read_text(encoding="utf-8"))
+    edit(spec)
+    path = tmp_path / "body.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    return path
+
+
+def test_feature_skeleton_with_wider_limits_is_fitted_and_tracked(tmp_path):
+    """``data.skeleton``: a human31 copy with other limits is the model the subject fit and the
+    tracker's runtime use (the limits travel with the sequence's skeleton)."""
+    import math
+
+    from torchmocap.assembly import Runtime
+
+    def widen(spec):
+        for j in spec["joints"]:
+            if j["name"] in ("l_knee", "r_knee"):
+                j["limits_deg"] = [[0, 160]]
+
+    path = _human31_yaml(tmp_path, widen)
+    seq = synthesized_sequence(_clip(), "clean", FAST, seed=0, skeleton=str(path))
+    default = synthesized_sequence(_clip(), "clean", FAST, seed=0)
+    for s, knee in ((seq, 160.0), (default, 135.0)):
+        sk = Runtime.from_sequence(s).skeleton
+        d = sk.dof_names.index("l_knee_flex")
+        assert math.degrees(float(sk.upper[d])) == pytest.approx(knee, abs=1e-4)
+    assert seq.meta["skeleton"] == str(path) and default.meta["skeleton"] == "human31"
+    # the bone lengths are still the clip's
+    a, b = seq.ground_truth.build_skeleton(), default.ground_truth.build_skeleton()
+    assert torch.allclose(a.offsets, b.offsets, atol=1e-6)
+
+
+def test_exception_skeleton(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"^data\.skeleton: no such file"):
+        synthesized_sequence(_clip(), "clean", FAST, seed=0, skeleton=str(tmp_path / "no.yaml"))
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("joints: 3\n")
+    with pytest.raises(DataConfigError, match=r"^data\.skeleton: cannot read a skeleton"):
+        synthesized_sequence(_clip(), "clean", FAST, seed=0, skeleton=str(bad))
+    from importlib import resources
+
+    upper = resources.files("torchmocap.skeleton.presets").joinpath("upper_body.yaml")
+    with pytest.raises(DataConfigError, match=r"^data\.skeleton: expected human31's joints"):
+        synthesized_sequence(_clip(), "clean", FAST, seed=0, skeleton=str(upper))
+
+    def drop_ankle_inversion(spec):
+        for j in spec["joints"]:
+            if j["name"] == "l_ankle":
+                j["axes"], j["dof_names"] = j["axes"][:1], j["dof_names"][:1]
+                j["limits_deg"] = j["limits_deg"][:1]
+
+    path = _human31_yaml(tmp_path, drop_ankle_inversion)
+    with pytest.raises(DataConfigError, match=r"^data\.skeleton: expected human31's DoFs.*"
+                                              r"l_ankle_inv"):
+        synthesized_sequence(_clip(), "clean", FAST, seed=0, skeleton=str(path))

@@ -13,7 +13,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-__all__ = ["CLIP_KEYS", "DataConfigError", "bundled_clip_path", "check_seed",
+__all__ = ["CLIP_KEYS", "DataConfigError", "body_model", "bundled_clip_path", "check_seed",
            "synthesized_sequence"]
 
 #: the settings of ``data.clip`` (every one is in ``conf/data/clip/bundled.yaml``, so each can
@@ -40,6 +40,31 @@ def _path(value, key: str) -> str | None:
     if not p.exists():
         raise FileNotFoundError(f"{key}: no such file: {p}")
     return str(p)
+
+
+def body_model(skeleton: str | None = None):
+    """The :class:`~torchmocap.skeleton.Skeleton` of ``data.skeleton``: human31 for ``None``,
+    else the YAML at that path, which must have human31's joints and DoFs (in its order: the
+    IMU placement, the skinning and the trackers' per-DoF settings name them)."""
+    from torchmocap.skeleton import Skeleton, human31
+
+    ref = human31()
+    path = _path(skeleton, "data.skeleton")
+    if path is None:
+        return ref
+    try:
+        sk = Skeleton.from_yaml(path)
+    except Exception as e:  # malformed YAML or skeleton spec
+        raise DataConfigError(f"data.skeleton: cannot read a skeleton from {path}: {e}") from e
+    for what, got, want in (("joints", sk.joint_names, ref.joint_names),
+                            ("DoFs", sk.dof_names, ref.dof_names)):
+        if list(got) != list(want):
+            diff = sorted(set(want) ^ set(got)) or "the same names in another order"
+            raise DataConfigError(
+                f"data.skeleton: expected human31's {what} in its order (a copy of "
+                f"torchmocap/skeleton/presets/human31.yaml with other limits or offsets), "
+                f"{path} differs: {diff}")
+    return sk
 
 
 def check_seed(value, key: str = "seed") -> int:
@@ -76,7 +101,7 @@ def _short_map(joint_map: Mapping[str, str], n: int = 4) -> str:
 
 def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
                          scenario_overrides: Mapping[str, Any] | None = None, seed: int = 0,
-                         min_frames: int = 2):
+                         min_frames: int = 2, skeleton: str | None = None):
     """Clip -> fitted human31 subject -> observations synthesised under ``scenario``.
 
     Args:
@@ -92,6 +117,10 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
             ``{"imu.misalignment_deg": [5, 10], "body": "capsules"}``.
         seed: seed of the synthesis (an integer; 1.5 is an error, not seed 1).
         min_frames: fewest frames accepted (a tracker needs 2).
+        skeleton: YAML of the body model to fit and track (null = human31 as shipped): human31's
+            joints and DoFs with other joint limits or proportions, e.g. a copy of
+            ``torchmocap/skeleton/presets/human31.yaml`` with wider ``limits_deg`` (the subject
+            fit still sets the bone lengths from the clip).
     Returns:
         a :class:`~torchmocap.data.Sequence` with ``meta["clip"]`` describing the source
         (``guessed_joints``: the human31 joints mapped by name guessing when no skeleton map
@@ -104,6 +133,7 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
     unknown = sorted(set(clip) - CLIP_KEYS)
     if unknown:
         raise DataConfigError(f"data.clip: unknown keys {unknown}; expected {sorted(CLIP_KEYS)}")
+    base = body_model(skeleton)
     path = _path(clip.get("path"), "data.clip.path") or str(bundled_clip_path())
     asf = _path(clip.get("asf"), "data.clip.asf")
     smap = clip.get("skeleton_map")
@@ -145,8 +175,9 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
         motion = motion.slice(a, end)
     if in_place:
         motion = motion.in_place()
-    subject = fit_subject(motion, skeleton_map=smap)
+    subject = fit_subject(motion, skeleton_map=smap, base=base)
     seq = synthesize(subject, sc, seed=seed)
+    seq.meta["skeleton"] = _path(skeleton, "data.skeleton") or "human31"
     seq.meta["clip"] = {"name": clip.get("name"), "path": path, "asf": asf,
                         "skeleton_map": smap, "skip_frames": skip, "start": float(start),
                         "in_place": in_place,
