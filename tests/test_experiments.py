@@ -57,19 +57,30 @@ def test_every_experiment_config_runs_for_three_frames(name, tmp_path, shared_da
     for k, v in params.items():
         if k not in ("seed", "data/clip", "tracker", "tracker.num_particles"):
             n_jobs *= len(str(v).split(","))
+    groups: dict[tuple[str, ...], list[str]] = {}
     for t in trackers:  # a tiny budget: annealing layers or descent steps
         kind = tracker_config(t).inference._target_.rsplit(".", 1)[-1]
-        budget = {"LocalInference": ["tracker.inference.iterations=2"],
-                  "SIRInference": ["tracker.num_particles=12"]}.get(
-            kind, ["tracker.num_particles=12", "tracker.inference.layers=2"])
-        r = subprocess.run([EXE, "-m", f"+experiment={name}", *narrow, f"tracker={t}",
+        budget = {"LocalInference": ("tracker.inference.iterations=2",),
+                  "SIRInference": ("tracker.num_particles=12",)}.get(
+            kind, ("tracker.num_particles=12", "tracker.inference.layers=2"))
+        groups.setdefault(budget, []).append(t)
+    # one sweep per budget: its trackers share a process; "++" because the sweep's base config
+    # (the default tracker) may lack a key that every job of the group has
+    for budget, ts in groups.items():
+        budget = tuple(f"++{b}" for b in budget)
+        r = subprocess.run([EXE, "-m", f"+experiment={name}", *narrow, f"tracker={','.join(ts)}",
                             "data.clip.frames=3", *budget,
                             "++data.scenario_overrides.image_size=[80,60]",
                             f"sequence_cache={tmp_path / 'cache'}",
                             f"hydra.sweep.dir={sweep}"],
                            capture_output=True, text=True, timeout=900, env=env, cwd=ROOT)
-        assert r.returncode == 0, (t, r.stderr[-3000:])
+        assert r.returncode == 0, (ts, r.stderr[-3000:])
     metrics = list(sweep.rglob("metrics.json"))
     assert len(metrics) == n_jobs * len(trackers)
+    small = {tracker_config(t).name for b, ts in groups.items() for t in ts
+             if "tracker.num_particles=12" in b}
     for m in metrics:
-        assert json.loads(m.read_text())["frames"] == 3
+        m = json.loads(m.read_text())
+        assert m["frames"] == 3
+        if m["tracker"] in small:  # the budget reached every job of its sweep
+            assert m["num_particles"] == 12, m["tracker"]
