@@ -136,6 +136,34 @@ class TestEnergyDerivatives:
         with pytest.raises(ValueError, match="Gauss-Newton"):
             energy_derivatives(double_well, x, method="gauss_newton")
 
+    def test_methods_come_from_one_table(self, monkeypatch):
+        """``DERIVATIVES`` and ``LOCAL_OPTIMISERS`` are the tables the names are dispatched
+        by: a registered derivative method is reached, an unknown name is refused, and every
+        optimiser name ``MixtureInference`` accepts is "auto" or a table entry."""
+        from torchmocap.filters import mixture
+
+        assert set(mixture.OPTIMISERS) == {"auto", *mixture.LOCAL_OPTIMISERS}
+        assert mixture.HESSIANS == tuple(mixture.DERIVATIVES)
+        x = torch.tensor([[0.3, -0.2]], dtype=torch.float64)
+        called = []
+
+        def fake(energy, theta, hessian, step):
+            called.append(step)
+            return energy(theta), torch.zeros_like(theta), None
+
+        monkeypatch.setitem(mixture.DERIVATIVES, "fake", fake)
+        energy_derivatives(double_well, x, hessian=False, method="fake", fd_step=0.5)
+        assert called == [0.5]
+        with pytest.raises(ValueError, match="method: expected one of"):
+            energy_derivatives(double_well, x, method="newton")
+        # non-differentiable energy: "autograd" refuses, "auto" falls back to differences
+        flat = lambda t: t.detach().square().sum(-1)  # noqa: E731
+        with pytest.raises(ValueError, match="differentiabl"):
+            energy_derivatives(flat, x, method="autograd")
+        v, g, H = energy_derivatives(flat, x, method="auto")
+        assert g is None and torch.allclose(H, 2 * torch.eye(2, dtype=torch.float64)[None],
+                                             atol=1e-6)
+
 
 class TestMixtureInference:
     def _run(self, context, seed=0, num=60, **kw):

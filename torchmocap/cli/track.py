@@ -305,6 +305,7 @@ def _hypotheses(seq, sk, infos) -> dict:
     from torchmocap.metrics import mpjpe_mm
 
     top, best, top_root, best_root, modes = [], [], [], [], []
+    root = _root_joint(sk)
     for t, info in enumerate(infos):
         if t == 0 or not isinstance(info, dict) or not info.get("hypotheses"):
             continue
@@ -313,7 +314,7 @@ def _hypotheses(seq, sk, infos) -> dict:
         truth = seq.ground_truth.positions[t].float()
         pos, ref = sk(H).positions, truth.expand(H.shape[0], -1, -1)
         err = mpjpe_mm(pos, ref)
-        err_root = mpjpe_mm(pos, ref, root=_root_joint(sk))
+        err_root = mpjpe_mm(pos, ref, root=root)
         k = int(torch.argmax(w))
         top.append(float(err[k]))
         best.append(float(err.min()))

@@ -74,8 +74,7 @@ __all__ = [
     "levenberg_marquardt",
 ]
 
-OPTIMISERS = ("auto", "gauss_newton", "lbfgs", "none")
-HESSIANS = ("auto", "gauss_newton", "autograd", "finite_difference")
+OPTIMISERS = ("auto", "gauss_newton", "lbfgs", "none")  # "auto" + LOCAL_OPTIMISERS
 
 
 # ---------------------------------------------------------------------- derivatives
@@ -171,23 +170,38 @@ def energy_derivatives(energy, theta: torch.Tensor, hessian: bool = True,
         ``V (P,)``, ``grad (P, D)`` (None when ``V`` is not differentiable) and
         ``H (P, D, D)`` (None when not asked).
     """
-    if method not in HESSIANS:
+    if method not in DERIVATIVES:
         raise ValueError(f"method: expected one of {HESSIANS}, got {method!r}")
-    if method in ("auto", "gauss_newton"):
-        fn = gauss_newton_function(energy)
-        if fn is not None:
-            v, g, H = fn(theta.detach(), hessian)
-            return v.detach(), g.detach(), None if H is None else H.detach()
-        if method == "gauss_newton":
-            raise ValueError("energy: Gauss-Newton derivatives need a likelihood whose every "
-                             "active term has gauss_newton() (e.g. Joints2DLikelihood)")
-    P, D = theta.shape
     step = fd_step if fd_step is not None else (1e-3 if theta.dtype == torch.float64
                                                  else 1e-2)
-    want_exact = hessian and method in ("auto", "autograd")
+    return DERIVATIVES[method](energy, theta, hessian, step)
+
+
+def _gauss_newton(energy, theta, hessian, step):
+    """The likelihood's analytic derivatives, or None when a term has none."""
+    fn = gauss_newton_function(energy)
+    if fn is None:
+        return None
+    v, g, H = fn(theta.detach(), hessian)
+    return v.detach(), g.detach(), None if H is None else H.detach()
+
+
+def _gauss_newton_required(energy, theta, hessian, step):
+    out = _gauss_newton(energy, theta, hessian, step)
+    if out is None:
+        raise ValueError("energy: Gauss-Newton derivatives need a likelihood whose every "
+                         "active term has gauss_newton() (e.g. Joints2DLikelihood)")
+    return out
+
+
+def _by_autograd(energy, theta, hessian, step, exact: bool, strict: bool):
+    """Autograd gradient; Hessian by double backward (``exact``) or central differences. A
+    non-differentiable energy is an error when ``strict``, else gets a difference Hessian."""
+    P, D = theta.shape
+    want_exact = hessian and exact
     v, g, x, vg = _autograd_value_grad(energy, theta, create_graph=want_exact)
     if g is None:
-        if method == "autograd":
+        if strict:
             raise ValueError("energy: output does not depend differentiably on theta")
         H = _fd_hessian(energy, theta.detach(), step) if hessian else None
         return v.detach(), None, H
@@ -207,6 +221,24 @@ def energy_derivatives(energy, theta: torch.Tensor, hessian: bool = True,
         else:
             H = _fd_hessian(energy, theta.detach(), step)
     return v.detach(), g.detach(), H
+
+
+def _auto(energy, theta, hessian, step):
+    """Gauss–Newton where every term has it, else autograd (difference Hessian as the last
+    resort for a non-differentiable energy)."""
+    return (_gauss_newton(energy, theta, hessian, step)
+            or _by_autograd(energy, theta, hessian, step, exact=True, strict=False))
+
+
+#: the derivative methods of :func:`energy_derivatives` by name, each called as
+#: ``(energy, theta, hessian, fd_step) -> (V, grad, H)``
+DERIVATIVES = {
+    "auto": _auto,
+    "gauss_newton": _gauss_newton_required,
+    "autograd": lambda e, t, h, s: _by_autograd(e, t, h, s, exact=True, strict=True),
+    "finite_difference": lambda e, t, h, s: _by_autograd(e, t, h, s, exact=False, strict=False),
+}
+HESSIANS = tuple(DERIVATIVES)
 
 
 # ---------------------------------------------------------------------- local optimisation
@@ -438,7 +470,7 @@ class MixtureInference(Inference):
                 raise ValueError(f"{name}: expected an int >= {lo}, got {v!r}")
         if optimiser not in OPTIMISERS:
             raise ValueError(f"optimiser: expected one of {OPTIMISERS}, got {optimiser!r}")
-        if hessian not in HESSIANS:
+        if hessian not in DERIVATIVES:
             raise ValueError(f"hessian: expected one of {HESSIANS}, got {hessian!r}")
         if merge_distance is None:
             merge_distance = 0.03 if (merge_space == "joints" or (
@@ -527,26 +559,36 @@ class MixtureInference(Inference):
         return fn
 
     def _optimise(self, energy, x0, anchors, prec, lo, hi):
-        """Locally optimised ``x``, total and likelihood energies, and iterations."""
-        fn = self._derivs_fn(energy, anchors, prec)
+        """Locally optimised ``x``, total and likelihood energies, and iterations, by the
+        optimiser named in ``self.optimiser`` (:data:`LOCAL_OPTIMISERS`; ``"auto"``:
+        Gauss–Newton where the likelihood has it, else L-BFGS)."""
         mode = self.optimiser
         if mode == "auto":
             mode = "gauss_newton" if gauss_newton_function(energy) is not None else "lbfgs"
-        if mode == "none" or self.iterations == 0:
-            with torch.no_grad():
-                v_lik = energy(x0)
-            v = v_lik if prec is None else v_lik + 0.5 * (((x0 - anchors) ** 2) * prec).sum(-1)
-            return x0, v, v_lik, 0
-        if mode == "gauss_newton":
-            def derivs(x, rows):
-                v, g, H, _ = fn(x, rows)
-                return v, g, H
+        if self.iterations == 0:
+            mode = "none"
+        return LOCAL_OPTIMISERS[mode](self, energy, x0, anchors, prec, lo, hi)
 
-            x, v, _, _, its = levenberg_marquardt(derivs, x0, lo, hi, self.iterations)
-            with torch.no_grad():
-                v_lik = energy(x)
-            return x, v, v_lik.detach(), its
-        # L-BFGS on V (+ prior) with autograd
+    def _optimise_none(self, energy, x0, anchors, prec, lo, hi):
+        with torch.no_grad():
+            v_lik = energy(x0)
+        v = v_lik if prec is None else v_lik + 0.5 * (((x0 - anchors) ** 2) * prec).sum(-1)
+        return x0, v, v_lik, 0
+
+    def _optimise_gauss_newton(self, energy, x0, anchors, prec, lo, hi):
+        fn = self._derivs_fn(energy, anchors, prec)
+
+        def derivs(x, rows):
+            v, g, H, _ = fn(x, rows)
+            return v, g, H
+
+        x, v, _, _, its = levenberg_marquardt(derivs, x0, lo, hi, self.iterations)
+        with torch.no_grad():
+            v_lik = energy(x)
+        return x, v, v_lik.detach(), its
+
+    def _optimise_lbfgs(self, energy, x0, anchors, prec, lo, hi):
+        """L-BFGS on V (+ prior) with autograd."""
         if prec is None:
             total = energy
         else:
@@ -699,3 +741,10 @@ class MixtureInference(Inference):
                 f"merge_distance={self.merge_distance}, merge_space={self.merge_space!r}, "
                 f"prior_std_deg={self.prior_std_deg}")
 
+
+#: the local optimisers of :class:`MixtureInference` by name (``"auto"`` picks one of them)
+LOCAL_OPTIMISERS = {
+    "none": MixtureInference._optimise_none,
+    "gauss_newton": MixtureInference._optimise_gauss_newton,
+    "lbfgs": MixtureInference._optimise_lbfgs,
+}
