@@ -97,14 +97,16 @@ def test_unseen_family_guessed(capsys, shared_data):
     sites): every joint is mapped by its name, and the output says they were guessed."""
     bvh = shared_data / "synthetic" / "unseen22_suffix_L.bvh"
     rc, info, err = _run(capsys, bvh)
-    assert rc == 0 and "unknown length unit" in err
+    # no map gives the unit: inferred from the ankle-head chain (159.8 file units: cm)
+    assert rc == 0 and "inferred 0.01 m per unit (cm)" in err and "159.8 units" in err
+    assert info["unit_m"] == 0.01
     assert info["skeleton_family"] is None and info["joints"] == 27
     assert info["joint_map_source"] == "guessed" and info["unmapped_joints"] == []
     assert info["guessed_joints"] == list(info["joint_map"]) and len(info["joint_map"]) == 21
     assert info["joint_map"]["l_shoulder"] == "UpperArm_L"
     assert info["joint_map"]["r_knee"] == "LowerLeg_R" and info["joint_map"]["l_toe"] == "Toes_L"
-    # ankle-hip-head chain (the head's end site has zero length): cm read as metres
-    assert info["height_m"] == pytest.approx(159.8, abs=0.1)
+    # ankle-hip-head chain (the head's end site has zero length)
+    assert info["height_m"] == pytest.approx(1.598, abs=0.001)
 
 
 def test_skeleton_map_option(capsys, tmp_path, mocap, shared_data):

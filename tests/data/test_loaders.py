@@ -25,10 +25,22 @@ def _clip(**kw):
     ("fps", 0), ("fps", -25), ("fps", float("nan")), ("fps", float("inf")), ("fps", True),
     ("start", -1.0), ("start", float("nan")), ("start", float("inf")), ("start", True),
     ("frames", 0), ("frames", 2.5), ("skip_frames", -1),
+    ("unit", 0), ("unit", -0.01), ("unit", float("nan")), ("unit", "cm"), ("unit", True),
 ])
 def test_exception_clip_settings(key, value):
     with pytest.raises(DataConfigError, match=rf"^data\.clip\.{key}: expected"):
         synthesized_sequence(_clip(**{key: value}), "clean", FAST, seed=0)
+
+
+def test_feature_clip_unit_reaches_the_reader():
+    """``data.clip.unit`` overrides the file's unit (the bundled walk's map: 1/0.45 inch): the
+    subject is fitted at that size and the unit is recorded in the sequence's metadata."""
+    seqs = {u: synthesized_sequence(_clip(unit=u), "clean", FAST, seed=0)
+            for u in (None, 0.0254 / 0.45 * 1.1)}
+    assert seqs[None].meta["clip"]["unit"] == pytest.approx(0.0254 / 0.45)
+    assert seqs[0.0254 / 0.45 * 1.1].meta["clip"]["unit"] == pytest.approx(0.0254 / 0.45 * 1.1)
+    arm = [s.ground_truth.build_skeleton().offsets[6].norm() for s in seqs.values()]  # upper arm
+    assert float(arm[1] / arm[0]) == pytest.approx(1.1, rel=1e-3)
 
 
 def test_exception_more_frames_than_the_clip_has():

@@ -18,8 +18,8 @@ __all__ = ["CLIP_KEYS", "DataConfigError", "body_model", "bundled_clip_path", "c
 
 #: the settings of ``data.clip`` (every one is in ``conf/data/clip/bundled.yaml``, so each can
 #: be overridden on the command line without ``+``)
-CLIP_KEYS = frozenset({"name", "path", "asf", "skeleton_map", "fps", "skip_frames", "start",
-                       "frames", "in_place"})
+CLIP_KEYS = frozenset({"name", "path", "asf", "skeleton_map", "unit", "fps", "skip_frames",
+                       "start", "frames", "in_place"})
 
 
 class DataConfigError(ValueError):
@@ -107,7 +107,9 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
     Args:
         clip: ``name`` (a label for run directories and reports), ``path`` (BVH/AMC/ASF;
             null = the bundled walk), ``asf`` (skeleton of an AMC),
-            ``skeleton_map`` (family name or map YAML; null = auto-detected), ``fps`` (resample
+            ``skeleton_map`` (family name or map YAML; null = auto-detected), ``unit`` (metres
+            per file length unit; null = the map's, else inferred from the subject's size —
+            :func:`~torchmocap.io.units.infer_length_unit`), ``fps`` (resample
             to; null = the scenario's), ``skip_frames`` (leading source frames to drop),
             ``start`` (seconds to skip after resampling), ``frames`` (frames to keep; null =
             all; more than the clip has after ``start`` is an error), ``in_place`` (hold the
@@ -139,6 +141,10 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
     smap = clip.get("skeleton_map")
     if smap and Path(str(smap)).expanduser().is_file():
         smap = str(Path(str(smap)).expanduser().absolute())
+    unit = clip.get("unit")
+    if unit is not None:
+        unit = _number(unit, "data.clip.unit", "metres per file length unit (> 0) or null", 0,
+                       True)
     skip = _int(clip.get("skip_frames") or 0, "data.clip.skip_frames", 0)
     frames = _int(clip.get("frames"), "data.clip.frames", min_frames, allow_none=True)
     in_place = clip.get("in_place", False)
@@ -154,7 +160,7 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
     if sc_name.endswith((".yaml", ".yml")):
         sc_name = str(Path(sc_name).expanduser().absolute())
     sc = load_scenario(sc_name, **dict(scenario_overrides or {}))
-    motion = load_motion(path, asf=asf, skip_frames=skip, skeleton_map=smap)
+    motion = load_motion(path, asf=asf, unit=unit, skip_frames=skip, skeleton_map=smap)
     fps = float(fps_cfg) if fps_cfg is not None else float(sc.fps)
     if abs(motion.fps - fps) > 1e-6:
         motion = motion.resample(fps)
@@ -179,7 +185,8 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
     seq = synthesize(subject, sc, seed=seed)
     seq.meta["skeleton"] = _path(skeleton, "data.skeleton") or "human31"
     seq.meta["clip"] = {"name": clip.get("name"), "path": path, "asf": asf,
-                        "skeleton_map": smap, "skip_frames": skip, "start": float(start),
+                        "skeleton_map": smap, "unit": motion.unit, "skip_frames": skip,
+                        "start": float(start),
                         "in_place": in_place,
                         "fps": fps, "frames": seq.num_frames, "family": subject.family,
                         "guessed_joints": subject.info.get("guessed_joints", [])}

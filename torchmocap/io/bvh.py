@@ -4,7 +4,8 @@ Reader: any joint may have its own channel order; 3 or 6 channels (any subset of
 ``{X,Y,Z}{position,rotation}``, each at most once); position channels below the root give a
 per-frame translation that replaces the joint's OFFSET; ``End Site`` blocks become 0-DoF leaf
 joints named ``<parent>_end``. Lengths are multiplied by ``unit`` (metres per file unit): pass
-it, or let the file's skeleton family (:mod:`torchmocap.io.skeleton_maps`) supply it. Y-up files
+it, or let the file's skeleton family (:mod:`torchmocap.io.skeleton_maps`) supply it, or else
+the subject's size (:mod:`torchmocap.io.units`). Y-up files
 are turned Z-up (``(x, y, z) -> (x, -z, y)``). Rotation channels ``Zrotation Xrotation Yrotation``
 mean ``L = Rz(z) @ Rx(x) @ Ry(y)`` (the channel order is the matrix product order).
 
@@ -307,18 +308,36 @@ def _resolve_unit(
         family = detect_family(names, source_format="bvh", path=path)
         smap = load_skeleton_map(family) if family is not None else None
     if unit is None:
-        if smap is not None and smap.unit is not None:
-            unit = smap.unit
-        else:
-            warnings.warn(
-                f"{path}: unknown length unit (no skeleton map with a 'unit' matches); assuming "
-                "metres - pass unit= (metres per file unit) if the subject's size looks wrong",
-                stacklevel=3,
-            )
-            unit = 1.0
-    if not (math.isfinite(unit) and unit > 0):
+        if smap is None or smap.unit is None:
+            return None, family  # inferred from the skeleton's size by the caller
+        unit = smap.unit
+    if isinstance(unit, bool) or not isinstance(unit, (int, float)) or not (
+            math.isfinite(unit) and unit > 0):
         raise ValueError(f"unit: expected a positive number of metres per file unit, got {unit!r}")
     return float(unit), family
+
+
+def _infer_unit(joints: list[_Joint], path: str, skeleton_map) -> float:
+    """Metres per unit of a file no map gives a unit for, from its rest skeleton's size
+    (:func:`~torchmocap.io.units.infer_length_unit`); metres when nothing fits, with a warning."""
+    from torchmocap.io.units import infer_length_unit
+
+    rest = MotionClip(
+        joint_names=[j.name for j in joints], parents=[j.parent for j in joints],
+        offsets=y_up_to_z_up(torch.tensor([j.offset for j in joints], dtype=torch.float64)),
+        rotations=torch.eye(3, dtype=torch.float64).repeat(1, len(joints), 1, 1),
+        root_translation=torch.zeros(1, 3, dtype=torch.float64), fps=1.0,
+        axes=[torch.zeros(0, 3, dtype=torch.float64) for _ in joints], source_path=path)
+    guess = infer_length_unit(rest, skeleton_map)
+    if guess.unit is None:
+        warnings.warn(f"{path}: unknown length unit (no skeleton map with a 'unit' matches, and "
+                      f"{guess.describe()}); assuming metres - pass unit= (data.clip.unit: metres "
+                      "per file unit)", stacklevel=3)
+        return 1.0
+    warnings.warn(f"{path}: no skeleton map gives the length unit; inferred "
+                  f"{guess.describe()} - pass unit= (data.clip.unit) if that is wrong",
+                  stacklevel=3)
+    return guess.unit
 
 
 def read_bvh(
@@ -333,7 +352,9 @@ def read_bvh(
     Args:
         path: the ``.bvh`` file.
         unit: metres per file length unit (e.g. 0.01 for cm). ``None``: the matched skeleton
-            map's ``unit``; metres (with a warning) when no map fixes one.
+            map's ``unit``; when no map gives one, inferred from the rest skeleton's size
+            (:func:`~torchmocap.io.units.infer_length_unit`: m, cm, mm, inch or the CMU ASF
+            unit, whichever makes it an adult's; metres when none does), with a warning.
         skip_frames: drop this many leading frames (e.g. 1 for the synthetic T-pose frame 0 of
             the cgspeed CMU MotionBuilder files). Nothing is dropped unless asked.
         skeleton_map: family name or YAML path to use instead of auto-detection.
@@ -357,6 +378,8 @@ def read_bvh(
     values = values[skip_frames:]
     names = [j.name for j in joints]
     unit, family = _resolve_unit(names, path, unit, skeleton_map)
+    if unit is None:
+        unit = _infer_unit(joints, path, skeleton_map)
 
     T = values.shape[0]
     vals = torch.from_numpy(values).to(torch.float64)

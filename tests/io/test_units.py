@@ -1,0 +1,101 @@
+"""Length unit of BVH files no skeleton map knows, inferred from the subject's size."""
+
+from __future__ import annotations
+
+import re
+import warnings
+
+import pytest
+import torch
+
+from torchmocap.io import load_motion, read_bvh, write_bvh
+from torchmocap.io.skeleton_maps import chain_height, human31_positions
+from torchmocap.io.units import LENGTH_UNITS, infer_length_unit
+
+from .synthetic_bvh import unseen_family_clip, write_unseen_family_bvh
+
+
+def _read(path, **kw):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        clip = read_bvh(path, **kw)
+    return clip, [str(w.message) for w in caught]
+
+
+@pytest.mark.parametrize("name,unit", list(LENGTH_UNITS.items()))
+@pytest.mark.parametrize("convention", ["mixamo", "unreal"])
+def test_feature_unit_inferred_for_every_common_unit(tmp_path, convention, name, unit):
+    """The same motion written in m, CMU units, inches, cm and mm reads back in metres: the
+    inferred unit is the one written, the joint positions are the clip's, the warning says so."""
+    ref = unseen_family_clip(convention)
+    path = write_unseen_family_bvh(tmp_path / "clip.bvh", convention, unit=unit)
+    clip, msgs = _read(path)
+    assert clip.unit == pytest.approx(unit, rel=1e-12)
+    assert any(f"inferred {unit:g} m per unit ({name})" in m for m in msgs), msgs
+    torch.testing.assert_close(human31_positions(clip), human31_positions(ref),
+                               atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("scale", [0.82, 1.2])
+def test_feature_adult_size_range(tmp_path, scale):
+    """Subjects from about 1.2 to 1.8 m ankle-head chain (the adults of CMU and HDM05) get the
+    written unit in both units next to each other in size (inch vs cm, inch vs CMU unit)."""
+    clip = unseen_family_clip("mixamo")
+    clip.offsets = clip.offsets * scale
+    clip.root_translation = clip.root_translation * scale
+    h = chain_height(clip)
+    assert 1.2 < h < 1.95
+    for unit in (0.0254, 0.01, 0.0254 / 0.45):
+        path = write_bvh(tmp_path / f"s{unit}.bvh", clip, unit=unit, precision=6)
+        got, _ = _read(path)
+        assert got.unit == pytest.approx(unit, rel=1e-12)
+
+
+def test_feature_explicit_and_map_units_win(tmp_path, cmu):
+    path = write_unseen_family_bvh(tmp_path / "clip.bvh", "mixamo", unit=0.01)
+    clip, msgs = _read(path, unit=0.02)  # explicit: no inference, no warning
+    assert clip.unit == 0.02 and not msgs
+    kick, msgs = _read(cmu / "cmu21_kick.bvh")  # the family map's cm
+    assert kick.unit == 0.01 and not msgs
+
+
+def test_feature_no_guess_without_a_human_size(tmp_path):
+    """An ankle-head chain of 11.2 file units: 11 m, 63 cm, 28 cm, 11 cm or 1 cm in the
+    candidate units — no person's size; metres are assumed and the warning says why."""
+    clip = unseen_family_clip("mixamo")
+    clip.offsets = clip.offsets * 7.0
+    path = write_bvh(tmp_path / "giant.bvh", clip, unit=1.0, precision=6)
+    got, msgs = _read(path)
+    assert got.unit == 1.0
+    assert any("unknown length unit" in m and "no common unit" in m for m in msgs), msgs
+
+
+def test_feature_unmappable_skeleton_is_not_guessed(tmp_path):
+    """Joints that do not map onto human31: nothing to measure, metres with the warning."""
+    clip = unseen_family_clip("mixamo", rename={"l_knee": "Gelenk7"})
+    path = write_bvh(tmp_path / "odd.bvh", clip, unit=0.01, precision=6)
+    got, msgs = _read(path)
+    assert got.unit == 1.0
+    assert any("unknown length unit" in m and "do not map onto human31" in m for m in msgs)
+    g = infer_length_unit(got)
+    assert g.unit is None and g.size is None
+
+
+def test_infer_length_unit_reports_the_measure():
+    clip = unseen_family_clip("unreal")  # metres
+    g = infer_length_unit(clip)
+    assert g.unit == 1.0 and g.name == "m"
+    assert g.size == pytest.approx(chain_height(clip), rel=1e-9)
+    assert "= " + f"{g.size:.2f} m" in g.describe()
+
+
+def test_real_cmu21_renamed_reads_like_its_family(tmp_path, cmu):
+    """A real CMU21 clip (cm) with its joints renamed Mixamo-style, so that no map detects it,
+    reads in the same metres as through its family's map."""
+    text = (cmu / "cmu21_hop.bvh").read_text()
+    renamed = re.sub(r"^(\s*(?:ROOT|JOINT) )(\w+)", r"\1mixamorig:\2", text, flags=re.M)
+    (tmp_path / "mix.bvh").write_text(renamed.replace("mixamorig:Neck1", "mixamorig:Neck"))
+    a = load_motion(cmu / "cmu21_hop.bvh")
+    b, msgs = _read(tmp_path / "mix.bvh")
+    assert b.skeleton_family is None and b.unit == 0.01
+    torch.testing.assert_close(human31_positions(b), human31_positions(a), atol=1e-9, rtol=0)

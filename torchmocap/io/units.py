@@ -1,0 +1,86 @@
+"""Length unit of a motion file that does not state one, inferred from the subject's size.
+
+BVH files carry no unit. A known skeleton family's map supplies it; for any other file the
+reader measures the rest skeleton — the straightened ankle -> hip -> spine -> head-end chain of
+:func:`~torchmocap.io.skeleton_maps.chain_height` (1.22-1.79 m for the adults of CMU and
+HDM05), which needs the joints mapped onto human31 (by a map or by their names) — and picks the
+common unit that makes it an adult's. A skeleton that does not map onto human31 gets no guess.
+The candidates differ by at least x2.2, and an adult's chain varies by about x1.25 either
+side of 1.5 m, so the pick is unambiguous for adults; for a child or a figure far from human
+size pass the unit explicitly (``unit=`` / ``data.clip.unit``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+__all__ = ["LENGTH_UNITS", "UnitGuess", "infer_length_unit"]
+
+#: Common length units of motion files, metres per unit.
+LENGTH_UNITS: dict[str, float] = {
+    "m": 1.0,
+    "CMU ASF unit (1/0.45 in)": 0.0254 / 0.45,
+    "in": 0.0254,
+    "cm": 0.01,
+    "mm": 0.001,
+}
+
+#: Reference size in metres of the ankle-hip-head chain (geometric middle of 1.22-1.79 m).
+_CHAIN_M = 1.5
+#: accepted range of the measured size after conversion, as a factor of the reference
+_PLAUSIBLE = (0.6, 1.6)
+
+
+@dataclass(frozen=True)
+class UnitGuess:
+    """Result of :func:`infer_length_unit`.
+
+    Attributes:
+        unit: metres per file unit (``None``: no guess).
+        name: the unit's name in :data:`LENGTH_UNITS` (``None`` with ``unit``).
+        size: the ankle-head chain in file units (``None`` when the joints do not map onto
+            human31).
+    """
+
+    unit: float | None
+    name: str | None
+    size: float | None
+
+    def describe(self) -> str:
+        if self.size is None:
+            return "its joints do not map onto human31, so its size cannot be measured"
+        if self.unit is None:
+            return (f"its ankle-head chain measures {self.size:.4g} file units, which no common "
+                    f"unit ({', '.join(LENGTH_UNITS)}) makes a person's size")
+        return (f"{self.unit:g} m per unit ({self.name}): its ankle-head chain measures "
+                f"{self.size:.4g} units = {self.size * self.unit:.2f} m")
+
+
+def infer_length_unit(clip, skeleton_map=None) -> UnitGuess:
+    """Metres per unit of ``clip`` (read with unit 1), from the size of its rest skeleton.
+
+    Args:
+        clip: a :class:`~torchmocap.io.MotionClip` whose lengths are in file units.
+        skeleton_map: the map to find ankle and head with (default: detected or guessed from
+            the joint names).
+
+    Returns:
+        :class:`UnitGuess`; ``unit`` is ``None`` when the joints do not map onto human31 or no
+        unit of :data:`LENGTH_UNITS` puts the chain within x0.6-x1.6 of an adult's 1.5 m.
+    """
+    from torchmocap.io.errors import SkeletonMapError
+    from torchmocap.io.skeleton_maps import chain_height
+
+    try:
+        size = 0.5 * (chain_height(clip, skeleton_map, "left")
+                      + chain_height(clip, skeleton_map, "right"))
+    except SkeletonMapError:
+        return UnitGuess(None, None, None)
+    if not (math.isfinite(size) and size > 0):
+        return UnitGuess(None, None, size)
+    name, unit = min(LENGTH_UNITS.items(), key=lambda kv: abs(math.log(size * kv[1] / _CHAIN_M)))
+    lo, hi = _PLAUSIBLE
+    if not lo <= size * unit / _CHAIN_M <= hi:
+        return UnitGuess(None, None, size)
+    return UnitGuess(unit, name, size)
