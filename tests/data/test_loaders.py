@@ -26,6 +26,7 @@ def _clip(**kw):
     ("start", -1.0), ("start", float("nan")), ("start", float("inf")), ("start", True),
     ("frames", 0), ("frames", 2.5), ("skip_frames", -1),
     ("unit", 0), ("unit", -0.01), ("unit", float("nan")), ("unit", "cm"), ("unit", True),
+    ("up", "Z"), ("up", "x"), ("up", 1),
 ])
 def test_exception_clip_settings(key, value):
     with pytest.raises(DataConfigError, match=rf"^data\.clip\.{key}: expected"):
@@ -41,6 +42,30 @@ def test_feature_clip_unit_reaches_the_reader():
     assert seqs[0.0254 / 0.45 * 1.1].meta["clip"]["unit"] == pytest.approx(0.0254 / 0.45 * 1.1)
     arm = [s.ground_truth.build_skeleton().offsets[6].norm() for s in seqs.values()]  # upper arm
     assert float(arm[1] / arm[0]) == pytest.approx(1.1, rel=1e-3)
+
+
+def test_feature_z_up_file_is_tracked_upright(tmp_path, shared_data):
+    """A real clip written Z-up, in cm, with Mixamo-style names (no map knows it): the sequence
+    stands upright at the size of the original, and the warnings say what was inferred."""
+    import re
+
+    from torchmocap.io import Y_UP_TO_Z_UP, load_motion, write_bvh
+
+    src = shared_data / "mocap" / "cmu" / "cmu21_kick.bvh"
+    zup = write_bvh(tmp_path / "zup.bvh", load_motion(src).change_basis(Y_UP_TO_Z_UP), unit=0.01)
+    text = re.sub(r"^(\s*(?:ROOT|JOINT) )(\w+)", r"\1mixamorig:\2", zup.read_text(), flags=re.M)
+    (tmp_path / "mix.bvh").write_text(text.replace("mixamorig:Neck1", "mixamorig:Neck"))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        seq = synthesized_sequence(_clip(path=str(tmp_path / "mix.bvh")), "clean", FAST, seed=0)
+        ref = synthesized_sequence(_clip(path=str(src)), "clean", FAST, seed=0)
+    msgs = " ".join(str(w.message) for w in caught)
+    assert "inferred 0.01 m per unit (cm)" in msgs and "the file is Z-up" in msgs
+    assert seq.meta["clip"]["unit"] == 0.01
+    torch.testing.assert_close(seq.ground_truth.positions, ref.ground_truth.positions,
+                               atol=1e-4, rtol=0)
+    head, ankle = seq.ground_truth.positions[:, 4, 2], seq.ground_truth.positions[:, 15, 2]
+    assert bool((head - ankle > 1.2).all())
 
 
 def test_exception_more_frames_than_the_clip_has():

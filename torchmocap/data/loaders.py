@@ -18,8 +18,8 @@ __all__ = ["CLIP_KEYS", "DataConfigError", "body_model", "bundled_clip_path", "c
 
 #: the settings of ``data.clip`` (every one is in ``conf/data/clip/bundled.yaml``, so each can
 #: be overridden on the command line without ``+``)
-CLIP_KEYS = frozenset({"name", "path", "asf", "skeleton_map", "unit", "fps", "skip_frames",
-                       "start", "frames", "in_place"})
+CLIP_KEYS = frozenset({"name", "path", "asf", "skeleton_map", "unit", "up", "fps",
+                       "skip_frames", "start", "frames", "in_place"})
 
 
 class DataConfigError(ValueError):
@@ -109,7 +109,9 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
             null = the bundled walk), ``asf`` (skeleton of an AMC),
             ``skeleton_map`` (family name or map YAML; null = auto-detected), ``unit`` (metres
             per file length unit; null = the map's, else inferred from the subject's size —
-            :func:`~torchmocap.io.units.infer_length_unit`), ``fps`` (resample
+            :func:`~torchmocap.io.units.infer_length_unit`), ``up`` (the file's up axis:
+            ``auto`` turns a clip whose rest pose does not stand along +z upright, ``y``, ``z``
+            — :func:`~torchmocap.io.upright.upright`), ``fps`` (resample
             to; null = the scenario's), ``skip_frames`` (leading source frames to drop),
             ``start`` (seconds to skip after resampling), ``frames`` (frames to keep; null =
             all; more than the clip has after ``start`` is an error), ``in_place`` (hold the
@@ -145,6 +147,11 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
     if unit is not None:
         unit = _number(unit, "data.clip.unit", "metres per file length unit (> 0) or null", 0,
                        True)
+    from torchmocap.io.upright import UP_AXES
+
+    up = clip.get("up") or "auto"
+    if up not in UP_AXES:
+        raise DataConfigError(f"data.clip.up: expected one of {list(UP_AXES)}, got {up!r}")
     skip = _int(clip.get("skip_frames") or 0, "data.clip.skip_frames", 0)
     frames = _int(clip.get("frames"), "data.clip.frames", min_frames, allow_none=True)
     in_place = clip.get("in_place", False)
@@ -160,7 +167,7 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
     if sc_name.endswith((".yaml", ".yml")):
         sc_name = str(Path(sc_name).expanduser().absolute())
     sc = load_scenario(sc_name, **dict(scenario_overrides or {}))
-    motion = load_motion(path, asf=asf, unit=unit, skip_frames=skip, skeleton_map=smap)
+    motion = load_motion(path, asf=asf, unit=unit, skip_frames=skip, skeleton_map=smap, up=up)
     fps = float(fps_cfg) if fps_cfg is not None else float(sc.fps)
     if abs(motion.fps - fps) > 1e-6:
         motion = motion.resample(fps)

@@ -50,6 +50,7 @@ def load_motion(
     skip_frames: int = 0,
     fps: float | None = None,
     skeleton_map: str | Path | None = None,
+    up: str = "auto",
 ) -> MotionClip:
     """Read a ``.bvh``, an ``.amc`` (with ``asf`` or the ``.asf`` :func:`find_asf` picks), or an
     ``.asf`` alone (its rest pose as a one-frame clip) into a Z-up metre :class:`MotionClip`.
@@ -64,7 +65,29 @@ def load_motion(
             error, not the default).
         skeleton_map: family name or map YAML (default: auto-detected); for BVH it also
             supplies the length unit.
+        up: the file's up axis: ``"auto"`` (the default: a clip whose rest pose does not stand
+            along +z after the usual Y-up reading is turned upright, with a warning — see
+            :func:`~torchmocap.io.upright.upright`), ``"y"`` (as read) or ``"z"`` (a Z-up
+            file).
     """
+    from torchmocap.io.upright import UP_AXES
+
+    if up not in UP_AXES:
+        raise ValueError(f"up: expected one of {UP_AXES}, got {up!r}")
+    clip = _read(path, asf, unit, skip_frames, fps, skeleton_map)
+    if clip.num_joints < 2:
+        return clip
+    from torchmocap.io.upright import upright
+
+    clip, note = upright(clip, up, skeleton_map)
+    if note is not None:
+        import warnings
+
+        warnings.warn(f"{path}: {note}", stacklevel=2)
+    return clip
+
+
+def _read(path, asf, unit, skip_frames, fps, skeleton_map) -> MotionClip:
     from torchmocap.io.asf import read_amc, read_asf
     from torchmocap.io.bvh import read_bvh
 

@@ -345,6 +345,26 @@ class MotionClip:
             fps=float(fps),
         )
 
+    def change_basis(self, G: torch.Tensor) -> MotionClip:
+        """The same motion in world axes rotated by ``G (3, 3)`` (a proper rotation): every
+        joint position becomes ``G @ p`` and every bone frame ``G R G^T`` — rest offsets,
+        rotation axes and translations are rotated, local rotations conjugated (what reading a
+        Y-up file as Z-up does with ``G = Y_UP_TO_Z_UP``)."""
+        G = torch.as_tensor(G).to(self.offsets)
+        if tuple(G.shape) != (3, 3):
+            raise ValueError(f"G: expected shape (3, 3), got {tuple(G.shape)}")
+        eye = torch.eye(3, dtype=G.dtype, device=G.device)
+        if not (torch.allclose(G @ G.T, eye, atol=1e-6) and float(torch.det(G)) > 0):
+            raise ValueError("G: expected a proper rotation matrix (G G^T = I, det G = +1)")
+        return replace(
+            self,
+            offsets=self.offsets @ G.T,
+            rotations=G @ self.rotations @ G.T,
+            root_translation=self.root_translation @ G.T,
+            axes=[a @ G.T for a in self.axes],
+            local_translations={k: v @ G.T for k, v in self.local_translations.items()},
+        )
+
     def with_angles(self, joint: str, angles: torch.Tensor) -> MotionClip:
         """Copy where ``joint``'s local rotation is set from ``angles (T, k)`` about its axes."""
         j = self.joint_index(joint)
