@@ -33,7 +33,7 @@ class TestSynthCli:
     def test_config_composes(self):
         cfg = _compose([])
         assert cfg.data.clip.path is None and cfg.data.clip.frames == 75
-        assert cfg.data.clip.fps == 25 and cfg.data.clip.skip_frames == 0
+        assert cfg.data.clip.fps == 25 and cfg.data.clip.skip_frames == "auto"
         assert cfg.data.scenario == "studio" and cfg.seed == 0
         cfg = _compose(["data.scenario=outdoor", "seed=4", "data.clip.frames=10"])
         assert cfg.data.scenario == "outdoor" and cfg.seed == 4 and cfg.data.clip.frames == 10

@@ -68,6 +68,22 @@ def test_feature_z_up_file_is_tracked_upright(tmp_path, shared_data):
     assert bool((head - ankle > 1.2).all())
 
 
+def test_feature_skip_frames_auto(shared_data):
+    """``skip_frames: auto`` (the bundled default) drops the cgspeed T-pose frame 0 of CMU
+    01_01 and records it; the bundled walk starts in motion and keeps every frame."""
+    path = str(shared_data / "mocap" / "cmu" / "01_01.bvh")
+    with pytest.warns(UserWarning, match="skipped the first 1 frame"):
+        auto = synthesized_sequence(_clip(path=path, skip_frames="auto"), "clean", FAST, seed=0)
+    one = synthesized_sequence(_clip(path=path, skip_frames=1), "clean", FAST, seed=0)
+    assert auto.meta["clip"]["skip_frames"] == 1
+    torch.testing.assert_close(auto.ground_truth.positions, one.ground_truth.positions)
+    walk = synthesized_sequence(_clip(skip_frames="auto"), "clean", FAST, seed=0)
+    assert walk.meta["clip"]["skip_frames"] == 0
+    with pytest.raises(DataConfigError, match=r"^data\.clip\.skip_frames: expected an integer "
+                                              r">= 0 or 'auto'"):
+        synthesized_sequence(_clip(skip_frames="Auto"), "clean", FAST, seed=0)
+
+
 def test_exception_more_frames_than_the_clip_has():
     """``data.clip.frames=10**9`` used to run on the whole clip silently."""
     # the bundled walk: 4 s at 120 fps -> 100 frames at 25 fps; from 1 s on, 75 are left

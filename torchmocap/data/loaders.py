@@ -112,7 +112,9 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
             :func:`~torchmocap.io.units.infer_length_unit`), ``up`` (the file's up axis:
             ``auto`` turns a clip whose rest pose does not stand along +z upright, ``y``, ``z``
             — :func:`~torchmocap.io.upright.upright`), ``fps`` (resample
-            to; null = the scenario's), ``skip_frames`` (leading source frames to drop),
+            to; null = the scenario's), ``skip_frames`` (leading source frames to drop, or
+            ``auto``: those holding a reference pose rather than motion, e.g. the T-pose frame
+            0 of the cgspeed CMU BVH — :func:`~torchmocap.io.trim.leading_reference_frames`),
             ``start`` (seconds to skip after resampling), ``frames`` (frames to keep; null =
             all; more than the clip has after ``start`` is an error), ``in_place`` (hold the
             root at its first-frame position and orientation: the person stands in place).
@@ -152,7 +154,10 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
     up = clip.get("up") or "auto"
     if up not in UP_AXES:
         raise DataConfigError(f"data.clip.up: expected one of {list(UP_AXES)}, got {up!r}")
-    skip = _int(clip.get("skip_frames") or 0, "data.clip.skip_frames", 0)
+    skip = clip.get("skip_frames") or 0
+    if skip != "auto" and (isinstance(skip, bool) or not isinstance(skip, int) or skip < 0):
+        raise DataConfigError(f"data.clip.skip_frames: expected an integer >= 0 or 'auto', got "
+                              f"{skip!r}")
     frames = _int(clip.get("frames"), "data.clip.frames", min_frames, allow_none=True)
     in_place = clip.get("in_place", False)
     if not isinstance(in_place, bool):
@@ -167,7 +172,13 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
     if sc_name.endswith((".yaml", ".yml")):
         sc_name = str(Path(sc_name).expanduser().absolute())
     sc = load_scenario(sc_name, **dict(scenario_overrides or {}))
-    motion = load_motion(path, asf=asf, unit=unit, skip_frames=skip, skeleton_map=smap, up=up)
+    motion = load_motion(path, asf=asf, unit=unit, skip_frames=0 if skip == "auto" else skip,
+                         skeleton_map=smap, up=up)
+    if skip == "auto":
+        from torchmocap.io.trim import trim_reference_frames
+
+        motion, lead = trim_reference_frames(motion, Path(path).name)
+        skip = lead.count
     fps = float(fps_cfg) if fps_cfg is not None else float(sc.fps)
     if abs(motion.fps - fps) > 1e-6:
         motion = motion.resample(fps)

@@ -47,7 +47,7 @@ def load_motion(
     path: str | Path,
     asf: str | Path | None = None,
     unit: float | None = None,
-    skip_frames: int = 0,
+    skip_frames: int | str = 0,
     fps: float | None = None,
     skeleton_map: str | Path | None = None,
     up: str = "auto",
@@ -59,7 +59,9 @@ def load_motion(
         path: the motion file.
         asf: the skeleton of an AMC file.
         unit: metres per file length unit (default: from the file or its skeleton map).
-        skip_frames: leading frames to drop (e.g. 1 for the cgspeed CMU MotionBuilder T-pose).
+        skip_frames: leading frames to drop (e.g. 1 for the cgspeed CMU MotionBuilder T-pose),
+            or ``"auto"``: the leading frames that are a reference pose rather than motion
+            (:func:`~torchmocap.io.trim.leading_reference_frames`), with a warning.
         fps: frame rate of an AMC (``None``: 120, the CMU and HDM05 rate); ignored for BVH
             (the file states it). Must be positive and finite when given (``fps=0`` is an
             error, not the default).
@@ -74,7 +76,15 @@ def load_motion(
 
     if up not in UP_AXES:
         raise ValueError(f"up: expected one of {UP_AXES}, got {up!r}")
-    clip = _read(path, asf, unit, skip_frames, fps, skeleton_map)
+    auto_skip = skip_frames == "auto"
+    if not auto_skip and (isinstance(skip_frames, bool) or not isinstance(skip_frames, int)):
+        raise ValueError(f"skip_frames: expected a number of frames >= 0 or 'auto', got "
+                         f"{skip_frames!r}")
+    clip = _read(path, asf, unit, 0 if auto_skip else skip_frames, fps, skeleton_map)
+    if auto_skip:
+        from torchmocap.io.trim import trim_reference_frames
+
+        clip, _ = trim_reference_frames(clip, path)
     if clip.num_joints < 2:
         return clip
     from torchmocap.io.upright import upright
