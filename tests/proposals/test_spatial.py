@@ -204,6 +204,30 @@ def test_depth_criterion_keeps_joints_near_the_cloud(scene):
         NearPointCloud(sk, radii={"l_hand": -1.0})
 
 
+def test_regression_frame_data_never_stale(scene, monkeypatch):
+    """The criteria's per-frame state (k-d tree, masks) belongs to the frame it was built from.
+    It used to be cached under ``id(frame)``, and the tracker's next frame, allocated where the
+    freed one lived, often got the same id — and the previous frame's point cloud (tracks
+    changed from run to run). Here every object has the same id, as after such a reuse: each
+    frame must still see its own cloud (a far one: every joint fails its radius; the body's:
+    almost none)."""
+    import torchmocap.proposals.spatial as spatial
+
+    monkeypatch.setattr(spatial, "id", lambda obj: 0, raising=False)
+    sk, body, rig, th, masks, pts = scene
+    driven = SpatialPriorProposal(sk, position_std=0.03, joints="upper_body",
+                                  criteria=[NearPointCloud(sk)], max_tries=4)
+    L = driven.joint_index.numel()
+    g = torch.Generator().manual_seed(5)
+    for i in range(4):
+        frame = Frame(index=i, time=0.0, depth=pts + (10.0 if i % 2 else 0.0))
+        out = driven.sample(ProposalContext(th, frame=frame), 50, g)
+        if i % 2:
+            assert out.stats["failed_joints"] == 50 * L, i
+        else:
+            assert out.stats["failed_joints"] < 0.1 * 50 * L, i
+
+
 def test_whole_pose_rejection_counts_rejections(scene):
     sk, body, rig, th, masks, _ = scene
     frame = Frame(index=0, time=0.0, silhouettes=masks)

@@ -241,9 +241,10 @@ class SpatialPriorProposal(Proposal):
         return theta.index_select(-1, self.free.to(theta.device))
 
     def _prepared(self, frame):
-        key = id(frame)
-        if self._states.get("key") != key:
-            self._states = {"key": key, "states": [c.prepare(frame) for c in self.criteria]}
+        # keyed on the frame object itself (held here): an id() key can be reused by the next
+        # frame once this one is freed, which served a stale frame's data
+        if self._states.get("frame") is not frame:
+            self._states = {"frame": frame, "states": [c.prepare(frame) for c in self.criteria]}
         return self._states["states"]
 
     def sample(self, context: ProposalContext, num: int,
@@ -355,9 +356,8 @@ class PoseInSilhouette:
     def __call__(self, theta: torch.Tensor, context: ProposalContext) -> torch.Tensor:
         if context.frame is None:
             raise ValueError("context.frame: the silhouette criterion needs the observations")
-        if self._state.get("key") != id(context.frame):
-            self._state = {"key": id(context.frame),
-                           "state": self.check.prepare(context.frame)}
+        if self._state.get("frame") is not context.frame:  # the object, not its id (reused)
+            self._state = {"frame": context.frame, "state": self.check.prepare(context.frame)}
         st = self._state["state"]
         K, L = theta.shape[0], self.joint_index.numel()
         if st is None:  # no usable silhouette: everything passes (and the frame says so)

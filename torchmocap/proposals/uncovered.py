@@ -325,7 +325,7 @@ class UncoveredLimbProposal(Proposal):
 
     def _points(self, frame, theta: torch.Tensor) -> torch.Tensor:
         """The frame's hull voxels (carved once per frame around the first call's poses)."""
-        if self._state.get("key") == id(frame):
+        if self._state.get("frame") is frame:  # the object, not its id (reused once freed)
             return self._state["points"]
         masks = getattr(frame, "silhouettes", None)
         if masks is None:
@@ -340,7 +340,7 @@ class UncoveredLimbProposal(Proposal):
                 valid = ~frame.view_dropped.bool()
             pts = foreground_points(self.rig, masks, bounds, self.voxel, valid,
                                     self.largest_component).to(theta)
-        self._state = {"key": id(frame), "points": pts}
+        self._state = {"frame": frame, "points": pts}
         return pts
 
     def _regrow(self, theta: torch.Tensor, chain: dict, pts: torch.Tensor,
