@@ -32,7 +32,7 @@ def _compose(overrides: list[str]):
 class TestSynthCli:
     def test_config_composes(self):
         cfg = _compose([])
-        assert cfg.data.clip.path is None and cfg.data.clip.frames == 75
+        assert cfg.data.clip.path is None and cfg.data.clip.frames == "auto"
         assert cfg.data.clip.fps == 25 and cfg.data.clip.skip_frames == "auto"
         assert cfg.data.scenario == "studio" and cfg.seed == 0
         cfg = _compose(["data.scenario=outdoor", "seed=4", "data.clip.frames=10"])

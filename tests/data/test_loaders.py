@@ -84,6 +84,22 @@ def test_feature_skip_frames_auto(shared_data):
         synthesized_sequence(_clip(skip_frames="Auto"), "clean", FAST, seed=0)
 
 
+def test_feature_frames_auto(shared_data):
+    """``frames: auto`` (the bundled default): up to 75 frames, all of a shorter clip — the
+    (trimmed) CMU21 jump across gives all its frames where ``frames: 75`` is an error."""
+    path = str(shared_data / "mocap" / "cmu" / "cmu21_jump-across.bvh")
+    seq = synthesized_sequence(_clip(path=path, frames="auto"), "clean", FAST, seed=0)
+    n = seq.num_frames
+    assert 2 <= n < 75 and seq.meta["clip"]["frames"] == n
+    with pytest.raises(DataConfigError, match=f"has {n} frames"):
+        synthesized_sequence(_clip(path=path, frames=75), "clean", FAST, seed=0)
+    walk = synthesized_sequence(_clip(frames="auto"), "clean", FAST, seed=0)
+    assert walk.num_frames == 75
+    with pytest.raises(DataConfigError, match=r"^data\.clip\.frames: expected an integer >= 2, "
+                                              r"'auto' or null, got 'all'"):
+        synthesized_sequence(_clip(frames="all"), "clean", FAST, seed=0)
+
+
 def test_exception_more_frames_than_the_clip_has():
     """``data.clip.frames=10**9`` used to run on the whole clip silently."""
     # the bundled walk: 4 s at 120 fps -> 100 frames at 25 fps; from 1 s on, 75 are left

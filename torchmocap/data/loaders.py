@@ -22,6 +22,10 @@ CLIP_KEYS = frozenset({"name", "path", "asf", "skeleton_map", "unit", "up", "fps
                        "skip_frames", "start", "frames", "in_place"})
 
 
+#: frames kept by ``data.clip.frames: auto`` (3 s at 25 fps; fewer when the clip is shorter)
+AUTO_FRAMES = 75
+
+
 class DataConfigError(ValueError):
     """A data setting is invalid (names the ``data.*`` key)."""
 
@@ -115,8 +119,9 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
             to; null = the scenario's), ``skip_frames`` (leading source frames to drop, or
             ``auto``: those holding a reference pose rather than motion, e.g. the T-pose frame
             0 of the cgspeed CMU BVH — :func:`~torchmocap.io.trim.leading_reference_frames`),
-            ``start`` (seconds to skip after resampling), ``frames`` (frames to keep; null =
-            all; more than the clip has after ``start`` is an error), ``in_place`` (hold the
+            ``start`` (seconds to skip after resampling), ``frames`` (frames to keep —
+            ``auto``: up to :data:`AUTO_FRAMES`, all of a shorter clip; null = all; a number
+            more than the clip has after ``start`` is an error), ``in_place`` (hold the
             root at its first-frame position and orientation: the person stands in place).
         scenario: bundled scenario name or YAML path (see :func:`~torchmocap.data.load_scenario`).
         scenario_overrides: dotted or nested scenario keys to replace, e.g.
@@ -158,7 +163,13 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
     if skip != "auto" and (isinstance(skip, bool) or not isinstance(skip, int) or skip < 0):
         raise DataConfigError(f"data.clip.skip_frames: expected an integer >= 0 or 'auto', got "
                               f"{skip!r}")
-    frames = _int(clip.get("frames"), "data.clip.frames", min_frames, allow_none=True)
+    frames = clip.get("frames")
+    auto_frames = frames == "auto"
+    if not auto_frames:
+        if isinstance(frames, str):
+            raise DataConfigError(f"data.clip.frames: expected an integer >= {min_frames}, "
+                                  f"'auto' or null, got {frames!r}")
+        frames = _int(frames, "data.clip.frames", min_frames, allow_none=True)
     in_place = clip.get("in_place", False)
     if not isinstance(in_place, bool):
         raise DataConfigError(f"data.clip.in_place: expected true or false, got {in_place!r}")
@@ -187,6 +198,8 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
         raise DataConfigError(f"data.clip.start: {start} s is past the clip's end "
                               f"({motion.num_frames / fps:.2f} s)")
     available = motion.num_frames - a
+    if auto_frames:
+        frames = min(AUTO_FRAMES, available)
     if frames is not None and frames > available:
         raise DataConfigError(f"data.clip.frames: {frames} frames requested but the clip has "
                               f"{available} frames after start {start:g} s at {fps:g} fps "
