@@ -42,6 +42,15 @@ def test_bvh(capsys, mocap):
     assert info["unmapped_joints"] == [] and info["guessed_joints"] == []
     assert info["joint_map_source"] == "skeleton_map"
     assert info["joint_map"]["l_knee"] == "LeftKnee" and info["ambiguous_joints"] == {}
+    assert info["reference_frames"] == 0
+
+
+def test_reference_frame_reported(capsys, mocap):
+    """The cgspeed MotionBuilder BVH's synthetic T-pose frame 0 is reported (tracking drops it
+    with skip_frames=auto); the file itself is described whole."""
+    rc, info, _ = _run(capsys, mocap / "cmu" / "01_01.bvh")
+    assert rc == 0 and info["skeleton_family"] == "cmu_mb"
+    assert info["reference_frames"] == 1
 
 
 def test_amc_finds_its_asf(capsys, mocap):

@@ -44,6 +44,9 @@ def _describe_motion(path: Path, asf: str | None, skeleton_map: str | None = Non
     except SkeletonMapError:
         height = None
     report = joint_map_report(clip, skeleton_map)
+    from torchmocap.io.trim import leading_reference_frames
+
+    lead = 0 if is_asf_only else leading_reference_frames(clip).count
     return {
         "path": str(path),
         "format": path.suffix.lower().lstrip("."),
@@ -53,6 +56,8 @@ def _describe_motion(path: Path, asf: str | None, skeleton_map: str | None = Non
         "frames": 0 if is_asf_only else clip.num_frames,
         "fps": None if is_asf_only else _round(clip.fps, 4),
         "duration_s": 0.0 if is_asf_only else _round(clip.duration_s, 4),
+        # leading frames holding a reference pose (skip_frames=auto drops them when tracking)
+        "reference_frames": lead,
         "height_m": height,
         "unit_m": _round(clip.unit, 9),
         "joint_map_source": report["source"],
