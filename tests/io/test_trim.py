@@ -65,3 +65,10 @@ def test_short_clip_is_never_trimmed(cmu):
 def test_exception_skip_frames(cmu, bad):
     with pytest.raises(ValueError, match=r"skip_frames"):
         load_motion(cmu / "cmu21_kick.bvh", skip_frames=bad)
+
+
+@pytest.mark.parametrize("kw", [{"max_frames": 0}, {"max_frames": 2.5}, {"min_jump": -0.1},
+                                {"factor": float("nan")}, {"factor": True}])
+def test_exception_settings(cmu, kw):
+    with pytest.raises(ValueError, match=rf"^{next(iter(kw))}: expected"):
+        leading_reference_frames(load_motion(cmu / "cmu21_kick.bvh"), **kw)

@@ -54,6 +54,11 @@ def leading_reference_frames(clip, max_frames: int = 5, min_jump: float = 0.15,
         :class:`LeadingFrames` (``count`` 0 when the clip has fewer than ``4 * max_frames``
         frames: too short to say what is typical).
     """
+    if isinstance(max_frames, bool) or not isinstance(max_frames, int) or max_frames < 1:
+        raise ValueError(f"max_frames: expected an int >= 1, got {max_frames!r}")
+    for name, v in (("min_jump", min_jump), ("factor", factor)):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < float("inf"):
+            raise ValueError(f"{name}: expected a finite number > 0, got {v!r}")
     T = clip.num_frames
     if T < 4 * max_frames:
         return LeadingFrames(0, 0.0, 0.0)

@@ -31,16 +31,13 @@ def rest_up_direction(clip, skeleton_map=None) -> torch.Tensor | None:
     """Unit vector ``(3,)`` from the mid-ankle to ``head_top`` in the rest pose, in the clip's
     world axes; ``None`` when the joints do not map onto human31 or the two coincide."""
     from torchmocap.io.errors import SkeletonMapError
-    from torchmocap.io.skeleton_maps import map_joints
+    from torchmocap.io.skeleton_maps import _structure, map_joints
 
     try:
         idx = map_joints(clip, skeleton_map)
     except SkeletonMapError:
         return None
-    off = clip.offsets.detach().to(torch.float64).cpu()
-    pos: list[torch.Tensor] = []
-    for j, p in enumerate(clip.parents):
-        pos.append(off[j] if p < 0 else pos[p] + off[j])
+    _, pos = _structure(clip, clip.joint_names)  # rest positions (J, 3), float64
     d = pos[idx["head_top"]] - 0.5 * (pos[idx["l_ankle"]] + pos[idx["r_ankle"]])
     n = float(d.norm())
     return d / n if n > 1e-9 else None
