@@ -47,7 +47,8 @@ class TestScenario:
             assert sc.name == name and sc.image_size == [320, 240] and sc.fps == 25.0
             assert sc.body == "skinned"
             rig = build_rig(sc.rig, sc.image_size)
-            assert rig.num_cameras == (1 if name in ("monocular", "stereo") else 4)
+            assert rig.num_cameras == (1 if name in ("monocular", "monocular_occlusion", "stereo")
+                                       else 4)
         clean, studio, outdoor = (load_scenario(n) for n in ("clean", "studio", "outdoor"))
         assert clean.imu.noise == "none" and clean.silhouettes.holes == 0
         assert studio.imu.kappa == 1000.0 and studio.imu.misalignment_deg == 2.0

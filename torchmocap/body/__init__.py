@@ -14,6 +14,7 @@ from torchmocap.body.capsules import (
     segment_closest_points,
     segment_distance,
 )
+from torchmocap.body.parts import own_parts
 from torchmocap.body.skinning import (
     HUMAN31_BONE_MAP,
     HUMAN31_SEGMENTS,
@@ -36,6 +37,7 @@ __all__ = [
     "capsules_to_trimesh",
     "export_mesh",
     "facing_camera",
+    "own_parts",
     "rays_blocked_by_capsules",
     "linear_blend_skinning",
     "rotation_between",

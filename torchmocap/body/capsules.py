@@ -194,15 +194,18 @@ def segment_distance(points: Tensor, endpoints: Tensor) -> Tensor:
 
 
 def rays_blocked_by_capsules(origins: Tensor, points: Tensor, endpoints: Tensor, radii: Tensor,
-                             own: Tensor | None = None, stop: float = 0.005) -> Tensor:
+                             own: Tensor | None = None, stop: float = 0.005,
+                             ignore: Tensor | None = None) -> Tensor:
     """Whether the line of sight from each origin to each point passes through a capsule.
 
     The ray segment runs from ``origins (C, 3)`` (camera centres) to ``stop`` metres before each
     point of ``points (P, N, 3)``; it is blocked when it comes closer than ``radii (B,)`` to the
     axis of one of the capsules ``endpoints (P, B, 2, 3)`` (the closest points of two segments,
     Ericson, *Real-Time Collision Detection* §5.1.9), skipping each point's own capsule
-    ``own (N,)`` (a point on a capsule's camera-facing skin is never hidden by that capsule).
-    Returns ``(C, P, N)`` bool. Memory and time are ``O(C P N B)``; no gradient.
+    ``own (N,)`` (a point on a capsule's camera-facing skin is never hidden by that capsule),
+    and every capsule flagged in ``ignore`` (``(N, B)`` or ``(P, N, B)`` bool: e.g. the capsules
+    a joint sits inside). Returns ``(C, P, N)`` bool. Memory and time are ``O(C P N B)``; no
+    gradient.
     """
     if origins.dim() != 2 or origins.shape[-1] != 3:
         raise ValueError(f"origins: expected shape (C, 3), got {tuple(origins.shape)}")
@@ -218,6 +221,12 @@ def rays_blocked_by_capsules(origins: Tensor, points: Tensor, endpoints: Tensor,
     if own is not None and own.shape != points.shape[1:2]:
         raise ValueError(f"own: expected shape ({points.shape[1]},) capsule indices, got "
                          f"{tuple(own.shape)}")
+    B = endpoints.shape[1]
+    if ignore is not None and (ignore.dtype != torch.bool or ignore.shape not in (
+            (points.shape[1], B), (points.shape[0], points.shape[1], B))):
+        raise ValueError(f"ignore: expected a bool tensor of shape ({points.shape[1]}, {B}) or "
+                         f"({points.shape[0]}, {points.shape[1]}, {B}), got "
+                         f"{tuple(ignore.shape)} {ignore.dtype}")
     with torch.no_grad():
         dt = points.dtype
         endpoints = endpoints.to(dt)
@@ -247,6 +256,8 @@ def rays_blocked_by_capsules(origins: Tensor, points: Tensor, endpoints: Tensor,
         if own is not None:
             hit = hit & (own.to(hit.device)[:, None] != torch.arange(
                 endpoints.shape[1], device=hit.device))
+        if ignore is not None:
+            hit = hit & ~ignore.to(hit.device)
         return hit.any(-1)
 
 

@@ -204,6 +204,13 @@ class Joints2DConfig:
         miss_prob: probability that a joint is not detected (confidence 0).
         confidence: range ``[lo, hi]`` of confidences of correct detections (uniform);
             outliers draw from ``[0.1, lo]``.
+        occlusion: model self-occlusion: joints the body surface hides from a camera
+            (:func:`~torchmocap.data.occlusion.joint_occlusion`) are detected as below.
+        occlusion_margin: metres of surface in front of a joint (beyond its own depth inside the
+            body) that hide it.
+        occluded_miss_prob: probability of missing a hidden joint.
+        occluded_pixel_noise: std (px) of the noise on a hidden joint's detection.
+        occluded_confidence: confidence range ``[lo, hi]`` of hidden joints' detections.
     """
 
     enabled: bool = True
@@ -211,6 +218,11 @@ class Joints2DConfig:
     outlier_prob: float = 0.0
     miss_prob: float = 0.0
     confidence: list[float] = field(default_factory=lambda: [1.0, 1.0])
+    occlusion: bool = False
+    occlusion_margin: float = 0.05
+    occluded_miss_prob: float = 0.5
+    occluded_pixel_noise: float = 3.0
+    occluded_confidence: list[float] = field(default_factory=lambda: [0.1, 0.5])
 
 
 @dataclass
@@ -316,6 +328,16 @@ class Scenario:
             _check(0 <= getattr(j, k) <= 1, f"joints2d.{k}", "in [0, 1]", getattr(j, k))
         _check(len(j.confidence) == 2 and 0.1 <= j.confidence[0] <= j.confidence[1] <= 1,
                "joints2d.confidence", "[lo, hi] with 0.1 <= lo <= hi <= 1", j.confidence)
+        _check(isinstance(j.occlusion, bool), "joints2d.occlusion", "true or false", j.occlusion)
+        _check(_finite(j.occlusion_margin) and j.occlusion_margin >= 0,
+               "joints2d.occlusion_margin", "a finite number >= 0 (metres)", j.occlusion_margin)
+        _check(0 <= j.occluded_miss_prob <= 1, "joints2d.occluded_miss_prob", "in [0, 1]",
+               j.occluded_miss_prob)
+        _check(_finite(j.occluded_pixel_noise) and j.occluded_pixel_noise >= 0,
+               "joints2d.occluded_pixel_noise", ">= 0", j.occluded_pixel_noise)
+        oc = j.occluded_confidence
+        _check(len(oc) == 2 and 0.01 <= oc[0] <= oc[1] <= 1, "joints2d.occluded_confidence",
+               "[lo, hi] with 0.01 <= lo <= hi <= 1", oc)
         return self
 
 
@@ -352,7 +374,8 @@ def _nest(overrides: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def load_scenario(name_or_path: str | Path | Scenario | dict, **overrides: Any) -> Scenario:
+def load_scenario(name_or_path: str | Path | Scenario | dict, _chain: tuple = (),
+                  **overrides: Any) -> Scenario:
     """Load a scenario by bundled name (``clean``, ``studio``, ``outdoor``) or YAML path.
 
     Args:
@@ -360,6 +383,9 @@ def load_scenario(name_or_path: str | Path | Scenario | dict, **overrides: Any) 
             :class:`Scenario` (copied, then overridden).
         **overrides: values replacing the file's: nested mappings (``imu={"kappa": 300}``) or
             dotted keys (``**{"imu.kappa": 300}``).
+
+    A YAML file may extend another scenario with ``base: <name or path>``: the base is loaded
+    first and the file's own keys replace its values.
 
     Returns:
         a validated :class:`Scenario`.
@@ -400,6 +426,17 @@ def load_scenario(name_or_path: str | Path | Scenario | dict, **overrides: Any) 
         if not isinstance(data, dict):
             raise ScenarioError(f"scenario: {path} must hold a mapping at the top level")
         name = str(data.get("name", path.stem))
+        if "base" in data:  # a scenario file may extend another: `base: monocular`
+            base = data.pop("base")
+            chain = (*_chain, str(path.resolve()))
+            if not isinstance(base, str):
+                raise ScenarioError(f"scenario.base: expected the name or path of another "
+                                    f"scenario, got {base!r}")
+            if len(chain) > 8 or str(path.resolve()) in _chain:
+                raise ScenarioError(f"scenario.base: {path} extends itself (through {base!r})")
+            data = OmegaConf.to_container(OmegaConf.merge(
+                load_scenario(base, _chain=chain).to_dict(), data))
+            data["name"] = name
     data.setdefault("name", name)
     try:
         cfg = OmegaConf.merge(OmegaConf.structured(Scenario), data, _nest(overrides))

@@ -42,6 +42,7 @@ from torchmocap.data.images import (
 )
 from torchmocap.data.imu import synthesize_imu
 from torchmocap.data.joints2d import synthesize_joints2d
+from torchmocap.data.occlusion import joint_occlusion
 from torchmocap.data.render import (
     capsule_mesh,
     rasterize_mask,
@@ -440,11 +441,22 @@ def synthesize(
         timings["depth_s"] = time.perf_counter() - t1
 
     # ---- 2D joints
+    extra_meta: dict = {}
     if sc.joints2d.enabled:
         j = sc.joints2d
+        occluded = None
+        if j.occlusion:
+            assert surface is not None
+            occluded = joint_occlusion(positions.float(), surface.vertices, surface.faces,
+                                       surface.face_part, list(sk.parents), rig,
+                                       j.occlusion_margin)
         seq.joints2d = synthesize_joints2d(positions.float(), rig, subgenerator(seed, "joints2d"),
                                            j.pixel_noise, j.outlier_prob, j.miss_prob,
-                                           tuple(j.confidence), dropped)
+                                           tuple(j.confidence), dropped, occluded,
+                                           j.occluded_miss_prob, j.occluded_pixel_noise,
+                                           tuple(j.occluded_confidence))
+        if occluded is not None:
+            extra_meta["joints2d_occluded_fraction"] = round(float(occluded.float().mean()), 4)
     timings["total_s"] = time.perf_counter() - t0
     seq.meta = {
         "seed": int(seed),
@@ -453,5 +465,6 @@ def synthesize(
         "subject": {"family": subject.family, "residual_mean_m": float(subject.residual.mean()),
                     "mapped_bones": list(subject.mapped_bones)},
         "timings": {k: round(v, 4) for k, v in timings.items()},
+        **extra_meta,
     }
     return seq

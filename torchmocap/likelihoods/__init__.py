@@ -28,6 +28,8 @@ from torchmocap.likelihoods.joints2d import (
     Joints2DLikelihood,
     Joints2DObservation,
     joints2d_energy,
+    occlusion_energy,
+    predicted_hidden,
     robust_cost,
 )
 from torchmocap.likelihoods.learned import (
@@ -74,6 +76,8 @@ __all__ = [
     "body_surface_pattern",
     "check_energy",
     "joints2d_energy",
+    "occlusion_energy",
+    "predicted_hidden",
     "limit_excess",
     "orientation_energy",
     "point_cloud_energy",

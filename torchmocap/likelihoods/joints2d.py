@@ -36,7 +36,18 @@ projection's ``2 x 3`` Jacobian, and the Gauss–Newton (IRLS) Hessian
 true Hessian wherever the residuals vanish. Cameras with lens distortion are supported by the
 energy (autograd) but not by the analytic derivatives.
 
-Shapes: ``P`` poses, ``D`` DoF, ``C`` cameras, ``J`` joints (``J'`` used ones).
+Depth order (``occlusion="capsules"``): one view cannot tell a limb from its mirror image in
+depth by the joints' positions, but a detector still shows which joints the body hides — it
+misses them more often and reports them with a low confidence. A detection below
+``occluded_below`` (or a missed joint) *reads as hidden*; the pose's capsule body predicts which
+joints are hidden (the line of sight from the camera to the joint passes through a capsule other
+than those the joint sits in or on, :func:`predicted_hidden`). Each in-image joint whose reading
+disagrees with the prediction adds ``log((1 - e) / e)`` (``e = occlusion_error``, the chance that
+the detector's cue is wrong): the negative log-likelihood ratio of a binary cue. The term is
+piecewise constant in the pose (no gradient, no Hessian contribution): it separates modes the
+residuals tie on, and a local optimiser only accepts steps that do not break it.
+
+Shapes: ``P`` poses, ``D`` DoF, ``C`` cameras, ``J`` joints (``J'`` used ones), ``B`` capsules.
 
 Example:
     >>> from torchmocap.skeleton import human31
@@ -69,11 +80,17 @@ __all__ = [
     "Joints2DObservation",
     "ROBUST_COSTS",
     "joints2d_energy",
+    "occlusion_energy",
+    "predicted_hidden",
     "robust_cost",
 ]
 
+#: Depth-order models of :class:`Joints2DLikelihood` (``occlusion``).
+OCCLUSION_MODELS = ("none", "capsules")
+
 #: Names of the robust functions ``rho(z)`` (see the module docstring).
 ROBUST_COSTS = ("cauchy", "geman_mcclure", "huber", "gaussian")
+_HIDDEN_MARGIN = 0.05  # m of line of sight before a joint that cannot hide it
 _DEPTH_EPS = 1e-6  # as torchmocap.cameras.projection (depth clamp of points behind a camera)
 
 
@@ -120,6 +137,8 @@ class Joints2DObservation:
         num_valid: number of detections with a positive weight ``N``.
         total_weight: ``W = sum weight``.
         empty: the frame has no valid detection (``on_empty="uninformative"``).
+        hidden: ``(C, J')`` bool, detections that read as hidden (missed or below
+            ``occluded_below``); None without a depth-order model.
     """
 
     uv: torch.Tensor
@@ -128,6 +147,7 @@ class Joints2DObservation:
     num_valid: int
     total_weight: float
     empty: bool = False
+    hidden: torch.Tensor | None = None
 
 
 def _norm_factor(obs: Joints2DObservation, reduction: str) -> float:
@@ -171,6 +191,68 @@ def joints2d_energy(positions: torch.Tensor, observation: Joints2DObservation, r
     return (w * rho).sum((-1, -2)) * _norm_factor(observation, reduction)
 
 
+def predicted_hidden(positions: torch.Tensor, joints: torch.Tensor, body, rig) -> torch.Tensor:
+    """Which joints the capsule body hides from each camera.
+
+    A joint is hidden when the segment from the camera centre to 5 cm before it passes through
+    a capsule that is neither one of the joint's own parts
+    (:func:`~torchmocap.body.parts.own_parts`; a capsule is carried by its bone's parent joint)
+    nor a capsule the joint lies inside.
+
+    Args:
+        positions: ``(P, J, 3)`` joint centres of the body's skeleton.
+        joints: ``(J',)`` int64 indices of the joints to test.
+        body: :class:`~torchmocap.body.CapsuleBody` of the skeleton (``B`` capsules).
+        rig: camera rig with ``C`` cameras.
+
+    Returns:
+        ``(P, C, J')`` bool.
+    """
+    from torchmocap.body.capsules import rays_blocked_by_capsules, segment_distance
+    from torchmocap.body.parts import own_parts
+
+    with torch.no_grad():
+        ep = body.endpoints(positions)  # (P, B, 2, 3)
+        joints = joints.to(positions.device)
+        X = positions.index_select(-2, joints)  # (P, J', 3)
+        radii = body.radii.to(positions)
+        own = own_parts(body.skeleton.parents).to(joints.device)
+        own = own[joints][:, body.parent_index.to(joints.device)]  # (J', B)
+        ignore = own[None] | (segment_distance(X, ep) < radii)  # (P, J', B)
+        hidden = rays_blocked_by_capsules(rig.camera_centers().to(positions), X, ep, radii,
+                                          stop=_HIDDEN_MARGIN, ignore=ignore)  # (C, P, J')
+        return hidden.transpose(0, 1)
+
+
+def occlusion_energy(positions: torch.Tensor, observation: Joints2DObservation, rig, body,
+                     error: float = 0.1) -> torch.Tensor:
+    """The depth-order energy (module docstring): ``log((1 - e) / e)`` per in-image joint whose
+    hidden/visible reading disagrees with the body's prediction.
+
+    Args:
+        positions: ``(P, J, 3)`` joint centres.
+        observation: with ``hidden`` set (``Joints2DLikelihood(occlusion="capsules")``).
+        rig: the camera rig.
+        body: the :class:`~torchmocap.body.CapsuleBody`.
+        error: ``e`` in ``(0, 0.5)``.
+
+    Returns:
+        ``(P,)`` energies (no gradient).
+    """
+    if observation.hidden is None:
+        raise ValueError("observation: has no hidden/visible readings (prepare it with "
+                         "occlusion='capsules')")
+    P = positions.shape[0]
+    if observation.empty:
+        return positions.new_zeros(P)
+    with torch.no_grad():
+        pred = predicted_hidden(positions, observation.joints, body, rig)  # (P, C, J')
+        X = positions.index_select(-2, observation.joints.to(positions.device))
+        inside = rig.project(X)[2]  # (P, C, J') in front and in the image
+        wrong = (pred != observation.hidden.to(pred.device)[None]) & inside
+        return wrong.sum((-1, -2)).to(positions.dtype) * math.log((1.0 - error) / error)
+
+
 class Joints2DLikelihood(Likelihood):
     """Robust reprojection energy of the skeleton's joints against 2D detections.
 
@@ -185,13 +267,19 @@ class Joints2DLikelihood(Likelihood):
         reduction: ``"sum"`` (``N`` times the weighted mean cost; default) or ``"mean"``.
         on_empty: ``"raise"`` (:class:`EmptyEvidenceError` from :meth:`prepare`) or
             ``"uninformative"`` (a constant, non-zero energy; the observation is flagged).
+        occlusion: depth-order model, ``"none"`` (default) or ``"capsules"`` (module
+            docstring; needs ``body``).
+        body: the tracker's :class:`~torchmocap.body.CapsuleBody` (runtime dependency).
+        occlusion_error: ``e``, the chance that a detection's hidden/visible reading is wrong.
+        occluded_below: confidence under which a detection reads as hidden.
     """
 
     requires = ("joints2d",)
 
     def __init__(self, rig, skeleton=None, scale_px: float = 4.0, robust: str = "cauchy",
                  joints: Sequence[str] | None = None, min_confidence: float = 0.0,
-                 reduction: str = "sum", on_empty: str = "raise") -> None:
+                 reduction: str = "sum", on_empty: str = "raise", occlusion: str = "none",
+                 body=None, occlusion_error: float = 0.1, occluded_below: float = 0.55) -> None:
         super().__init__()
         if rig is None:
             raise ValueError("rig: Joints2DLikelihood needs the camera rig of the detections")
@@ -207,6 +295,20 @@ class Joints2DLikelihood(Likelihood):
         if not (isinstance(min_confidence, (int, float)) and 0 <= min_confidence <= 1):
             raise ValueError(f"min_confidence: expected a number in [0, 1], got "
                              f"{min_confidence!r}")
+        if occlusion not in OCCLUSION_MODELS:
+            raise ValueError(f"occlusion: expected one of {OCCLUSION_MODELS}, got {occlusion!r}")
+        if occlusion != "none" and body is None:
+            raise ValueError("body: occlusion='capsules' needs the tracker's capsule body")
+        if not (isinstance(occlusion_error, (int, float)) and 0 < occlusion_error < 0.5):
+            raise ValueError(f"occlusion_error: expected a probability in (0, 0.5), got "
+                             f"{occlusion_error!r}")
+        if not (isinstance(occluded_below, (int, float)) and 0 < occluded_below <= 1):
+            raise ValueError(f"occluded_below: expected a confidence in (0, 1], got "
+                             f"{occluded_below!r}")
+        self.occlusion = occlusion
+        self.body = body if occlusion != "none" else None
+        self.occlusion_error = float(occlusion_error)
+        self.occluded_below = float(occluded_below)
         self.rig = rig
         self.skeleton = skeleton
         self.scale_px = float(scale_px)
@@ -254,19 +356,33 @@ class Joints2DLikelihood(Likelihood):
         uv = torch.where(finite[..., None], uv, torch.zeros_like(uv))
         n = int((w > 0).sum())
         total = float(w.double().sum())
+        hidden = None
+        if self.occlusion != "none":
+            hidden = ~(finite & (conf >= self.occluded_below))
         if n == 0:
             if self.on_empty == "raise":
                 raise EmptyEvidenceError(
                     f"joints2d: {where} has no valid 2D joint detection (every confidence is 0 "
                     f"or below min_confidence={self.min_confidence}); a frame without evidence "
                     "cannot be scored (on_empty='uninformative' gives it a constant energy)")
-            return Joints2DObservation(uv, w, idx, 0, 0.0, empty=True)
-        return Joints2DObservation(uv, w, idx, n, total)
+            return Joints2DObservation(uv, w, idx, 0, 0.0, empty=True, hidden=hidden)
+        return Joints2DObservation(uv, w, idx, n, total, hidden=hidden)
 
     # ------------------------------------------------------------------ energy
     def energy(self, poses: Poses, observation: Joints2DObservation) -> torch.Tensor:
-        return joints2d_energy(poses.kinematics.positions, observation, self.rig,
-                               self.scale_px, self.robust, self.reduction)
+        pos = poses.kinematics.positions
+        v = joints2d_energy(pos, observation, self.rig, self.scale_px, self.robust,
+                            self.reduction)
+        return v + self._occlusion(pos, observation)
+
+    def _occlusion(self, positions: torch.Tensor, observation: Joints2DObservation):
+        if self.body is None or observation.hidden is None:
+            return 0.0
+        v = occlusion_energy(positions.detach(), observation, self.rig, self.body,
+                             self.occlusion_error)
+        if self.reduction == "mean":
+            v = v / max(1, observation.hidden.numel())
+        return v
 
     def gauss_newton(self, poses: Poses | torch.Tensor, observation: Joints2DObservation,
                      hessian: bool = True):
@@ -319,7 +435,7 @@ class Joints2DLikelihood(Likelihood):
         rho, drho = robust_cost(zz, self.robust)
         w = observation.weight.to(dt)
         nf = _norm_factor(observation, self.reduction)
-        energy = (w * rho).sum((-1, -2)) * nf
+        energy = (w * rho).sum((-1, -2)) * nf + self._occlusion(kin.positions, observation)
         # d(u, v) / d x_cam (P, C, J', 2, 3); a point behind the camera (clamped depth) has no
         # derivative through its depth, as the clamp in the projection
         inv = 1.0 / z
@@ -340,5 +456,6 @@ class Joints2DLikelihood(Likelihood):
 
     def extra_repr(self) -> str:
         return (f"scale_px={self.scale_px}, robust={self.robust!r}, reduction="
-                f"{self.reduction!r}, on_empty={self.on_empty!r}, joints="
+                f"{self.reduction!r}, on_empty={self.on_empty!r}, occlusion="
+                f"{self.occlusion!r}, joints="
                 f"{'all' if self.joint_names is None else len(self.joint_names)}")
