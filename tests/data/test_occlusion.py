@@ -82,6 +82,10 @@ class TestJointOcclusion:
             joint_occlusion(pos, _wall(0.0), f, part, [-1], rig)
         with pytest.raises(ValueError, match="margin"):
             joint_occlusion(pos, _wall(0.0), f, part, [-1, 0], rig, margin=-1.0)
+        mixed = make_ring_rig(2).float()
+        mixed.image_size[1] = torch.tensor([160, 120]).to(mixed.image_size)
+        with pytest.raises(ValueError, match="same image size"):
+            joint_occlusion(pos, _wall(0.0), f, part, [-1, 0], mixed)
 
 
 class TestDetectorOnHiddenJoints:

@@ -73,7 +73,11 @@ def joint_occlusion(positions: Tensor, vertices: Tensor, faces: Tensor, face_par
         raise ValueError(f"margin: expected a number >= 0 (metres), got {margin!r}")
     T, J = positions.shape[:2]
     C = rig.num_cameras
-    W, H = (int(x) for x in rig.image_size[0].tolist())
+    sizes = rig.image_size.reshape(-1, 2)
+    if bool((sizes != sizes[0]).any()):
+        raise ValueError(f"rig: every camera must have the same image size, got "
+                         f"{sizes.tolist()}")
+    W, H = (int(x) for x in sizes[0].tolist())
     out = torch.zeros(T, C, J, dtype=torch.bool)
     own = torch.cat([own_parts(parents), torch.zeros(J, 1, dtype=torch.bool)], 1)  # +no part
     with torch.no_grad():
