@@ -153,10 +153,12 @@ def test_presets_are_compositions_of_the_documented_components():
     assert fid.estimator.sensors == "particles"
     assert fid.likelihood.terms.appearance.occlusion == "outlier"
     assert p.likelihood.terms.appearance.occlusion == "none" and p.inference.schedule.alpha == 0.5
-    ref = cfgs["p_refined"]  # p_fidelity + a local stage on LS's differentiable energy
+    ref = cfgs["p_refined"]  # p_fidelity + a local stage on LS's energy, distance silhouette
     assert p.inference.refine is None and ref.inference.refine._target_.endswith("LocalInference")
     assert dict(ref.likelihood.weights) == dict(cfgs["ls"].likelihood.weights)
     assert ref.likelihood.terms.silhouette.smooth is True
+    assert ref.likelihood.terms.silhouette.distance == 1.0
+    assert cfgs["ls"].likelihood.terms.silhouette.get("distance") is None  # LS keeps its blur
     assert ref.likelihood.terms.appearance.occlusion == "outlier"
     assert ref.inference.propagate == "particles" and ref.inference.schedule.alpha == 0.1
     pri = cfgs["p_prior"]  # p_fidelity + the temporal prior in the annealer's weights

@@ -119,7 +119,7 @@ def prepare_images(images, dtype: torch.dtype = torch.float32) -> ColourObservat
 def appearance_energy(kin, body, pattern: dict, rig, images,
                       view_valid: torch.Tensor | None = None,
                       endpoints: torch.Tensor | None = None,
-                      occlusion: str = "none") -> torch.Tensor:
+                      occlusion: str = "none", min_facing: float = 0.0) -> torch.Tensor:
     """``V_app (P,)`` of poses ``kin`` against colour ``images (C, H, W, 3)`` (uint8 or [0, 1]),
     or their :func:`prepare_images` form (no per-call conversion). ``endpoints`` may pass
     ``body.endpoints(kin)`` when the caller already has them; ``occlusion``: ``"none"``,
@@ -147,8 +147,13 @@ def appearance_energy(kin, body, pattern: dict, rig, images,
     # view-major planes (C, M): the reductions over views below run over a leading dim
     u, v, _, vis = rig.project_planar(pts)
     centres = rig.camera_centers().to(dtype)  # (C, 3)
-    # (c - x) . n > 0  <=>  c . n > x . n
-    ok = vis & (centres @ n.T > (pts * n).sum(-1))
+    # (c - x) . n > cos_min |c - x|: the point faces the camera (by more than grazing)
+    facing = centres @ n.T - (pts * n).sum(-1)  # (C, M)
+    if min_facing > 0:
+        dist = torch.cdist(centres, pts)  # (C, M)
+        ok = vis & (facing > min_facing * dist)
+    else:
+        ok = vis & (facing > 0)
     if hidden is not None:
         ok = ok & ~hidden
     if view_valid is not None:
@@ -203,8 +208,13 @@ class AppearanceLikelihood(Likelihood):
 
     requires = ("images",)
 
-    def __init__(self, body, rig, axial: int = 3, around: int = 4, occlusion: str = "none"):
+    def __init__(self, body, rig, axial: int = 3, around: int = 4, occlusion: str = "none",
+                 min_facing: float = 0.0):
         super().__init__()
+        if isinstance(min_facing, bool) or not isinstance(min_facing, (int, float)) \
+                or not 0 <= min_facing < 1:
+            raise ValueError(f"min_facing: expected a cosine in [0, 1), got {min_facing!r}")
+        self.min_facing = float(min_facing)
         if occlusion not in OCCLUSION:
             raise ValueError(f"occlusion: expected one of {OCCLUSION}, got {occlusion!r}")
         self.occlusion = occlusion
@@ -227,7 +237,8 @@ class AppearanceLikelihood(Likelihood):
         colours, view_valid = observation
         return appearance_energy(poses.kinematics, self.body, self.pattern, self.rig, colours,
                                  view_valid, endpoints=poses.endpoints(self.body),
-                                 occlusion=self.occlusion)
+                                 occlusion=self.occlusion, min_facing=self.min_facing)
 
     def extra_repr(self) -> str:
-        return f"axial={self.axial}, around={self.around}, occlusion={self.occlusion!r}"
+        return (f"axial={self.axial}, around={self.around}, occlusion={self.occlusion!r}, "
+                f"min_facing={self.min_facing}")

@@ -10,6 +10,16 @@ foreground in *both* directions, normalised per view and averaged over views:
 - image -> model: the fraction of foreground pixels not covered by any stadium, on a fixed,
   evenly spaced subset of ``G`` foreground pixels per view (chosen once per frame).
 
+The *distance* version (``distance=s`` pixels) replaces both 0/1 tests by a robust distance:
+a model point costs ``rho(d)`` with ``d`` its distance (pixels, from the masks' Euclidean distance
+transform, bilinear) to the nearest foreground pixel, a foreground sample ``rho(d)`` with ``d``
+how far it lies outside every stadium, ``rho(d) = d^2 / (d^2 + s^2)`` (Geman-McClure: 0 at 0, 1/2
+at ``s``, towards 1 far away). It is differentiable and zero where model and masks agree, so
+its minimum sits at the pose that generated the masks: the blurred version is not, since a
+blurred mask reads < 1 near every edge and a limb drawn inside the torso's silhouette pays less
+than the true one along its own edge (measured on the own-capsule control: 0.16 at the true
+pose, and lower for an arm folded into the torso).
+
 Both terms are batched over particles x views x capsules; no image is rendered, so the cost is
 ``O(P C B (m n + G))`` instead of ``O(P C H W)``. The *hard* version uses nearest-pixel lookups
 and a 0/1 coverage test (fast, for sampling); the *smooth* version uses bilinear lookups of a
@@ -22,6 +32,7 @@ optimisation). Pixel ``(x, y)`` covers ``[x - 0.5, x + 0.5) x [y - 0.5, y + 0.5)
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -53,6 +64,9 @@ class SilhouetteObservation:
             ``[x - 0.5, x + 0.5)`` (the convention of the cameras and the rasteriser).
         fg_valid: ``(C, G)`` which samples exist (views with fewer foreground pixels pad).
         view_valid: ``(C,)`` views to use (a dropped view or an empty mask is excluded).
+        outside: ``(C, 1, H, W)`` distance (pixels) of each pixel centre to the nearest
+            foreground pixel centre (0 on the foreground), for the distance version; ``None``
+            unless prepared with ``distance=True``.
     """
 
     masks: torch.Tensor
@@ -61,12 +75,15 @@ class SilhouetteObservation:
     fg_pixels: torch.Tensor
     fg_valid: torch.Tensor
     view_valid: torch.Tensor
+    outside: torch.Tensor | None = None
 
 
 def prepare_silhouettes(masks: torch.Tensor, num_samples: int = 150, blur: float = 1.5,
                         view_valid: torch.Tensor | None = None,
-                        dtype: torch.dtype = torch.float32) -> SilhouetteObservation:
-    """Prepare ``masks (C, H, W)`` for :func:`silhouette_energy`.
+                        dtype: torch.dtype = torch.float32,
+                        distance: bool = False) -> SilhouetteObservation:
+    """Prepare ``masks (C, H, W)`` for :func:`silhouette_energy` (``distance``: also the
+    distance transform of the background, for the distance version).
 
     The mask contract (foreground = 1): ``bool``; any numeric dtype whose values are exactly
     0 and 1; or ``uint8`` whose values are exactly 0 and 255 (8-bit image files). Anything else
@@ -124,8 +141,45 @@ def prepare_silhouettes(masks: torch.Tensor, num_samples: int = 150, blur: float
         b = F.conv2d(b, g.view(1, 1, -1, 1), padding=(r, 0))
     else:
         b = m[:, None]
+    outside = _outside_distance(m).to(dev) if distance else None
     return SilhouetteObservation(m.to(dev), F.pad(m, (1, 1, 1, 1)).to(dev), b.to(dev),
-                                 pix.to(dev), pv.to(dev), valid.to(dev))
+                                 pix.to(dev), pv.to(dev), valid.to(dev), outside)
+
+
+def _outside_distance(m: torch.Tensor) -> torch.Tensor:
+    """Euclidean distance (pixels) of every pixel of ``m (C, H, W)`` to the nearest foreground
+    pixel, ``(C, 1, H, W)`` (0 on the foreground; an empty view reads its diagonal)."""
+    import numpy as np
+    from scipy.ndimage import distance_transform_edt
+
+    C, H, W = m.shape
+    fg = m.detach().cpu().numpy() > 0
+    out = np.full((C, 1, H, W), math.hypot(H, W), dtype=np.float64)
+    for c in range(C):
+        if fg[c].any():
+            out[c, 0] = distance_transform_edt(~fg[c])
+    return torch.from_numpy(out).to(m.dtype)
+
+
+def _robust(d: torch.Tensor, scale: float) -> torch.Tensor:
+    """Geman-McClure ``d^2 / (d^2 + scale^2)`` of distances ``d >= 0`` (pixels)."""
+    d2 = d * d
+    return d2 / (d2 + scale * scale)
+
+
+def _lookup_distance(outside: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
+    """Distance to the foreground at pixels ``px, py (C, ...)``: bilinear inside the image; a
+    point outside adds its distance to the image's border to the border's value (continuous,
+    an upper bound of the Euclidean distance)."""
+    C, _, H, W = outside.shape
+    cx = px.clamp(0, W - 1)
+    cy = py.clamp(0, H - 1)
+    g = torch.stack([(cx + 0.5) / W * 2 - 1, (cy + 0.5) / H * 2 - 1], -1).reshape(C, -1, 1, 2)
+    v = F.grid_sample(outside.to(px.dtype), g, mode="bilinear", padding_mode="border",
+                      align_corners=False).view(px.shape)
+    ox, oy = px - cx, py - cy
+    beyond = (ox * ox + oy * oy).clamp_min(1e-12).sqrt()
+    return v + torch.where((ox != 0) | (oy != 0), beyond, torch.zeros_like(beyond))
 
 
 class _Stadiums(NamedTuple):
@@ -262,17 +316,33 @@ def _coverage_margin(q: torch.Tensor, st: _Stadiums, smooth: bool) -> torch.Tens
 
 def silhouette_energy(endpoints: torch.Tensor, radii: torch.Tensor, rig,
                       obs: SilhouetteObservation, smooth: bool = False, axis_samples: int = 5,
-                      across_samples: int = 3, tau: float = 1.5) -> torch.Tensor:
+                      across_samples: int = 3, tau: float = 1.5,
+                      distance: float | None = None) -> torch.Tensor:
     """Silhouette disagreement ``V_silh (P,)`` in [0, 1] of capsules ``endpoints (P, B, 2, 3)``.
 
     0 means the projected capsules and the foreground agree exactly at the sampled points; see
-    the module docstring for the two terms. Without any usable view (all dropped or empty) every
-    particle gets 1: the frame carries no silhouette evidence, and it must not look like a
-    perfect match.
+    the module docstring for the two terms and the three versions (hard; ``smooth``;
+    ``distance``, the robust scale in pixels, which needs ``obs`` prepared with
+    ``distance=True``). Without any usable view (all dropped or empty) every particle gets 1:
+    the frame carries no silhouette evidence, and it must not look like a perfect match.
     """
     st = _stadiums(endpoints, radii, rig)
     dt = st.ax.dtype
     px, py, area = _stadium_points(st, axis_samples, across_samples)
+    if distance is not None:
+        if obs.outside is None:
+            raise ValueError("obs: the distance version needs prepare_silhouettes(..., "
+                             "distance=True)")
+        cost = _robust(_lookup_distance(obs.outside, px, py), distance).mean(1)  # (C, B, P)
+        m2i = (cost * area).sum(1) / area.sum(1).clamp_min(1e-9)
+        margin = _coverage_margin(obs.fg_pixels, st, True)  # (C, G, P), pixels
+        uncovered = _robust(torch.relu(-margin), distance)
+        fv = obs.fg_valid.to(dt)[..., None]
+        i2m = (uncovered * fv).sum(1) / fv.sum(1).clamp_min(1)
+        vv = obs.view_valid.to(dt)[:, None]
+        if not bool(obs.view_valid.any()):
+            return torch.ones(endpoints.shape[0], dtype=dt, device=endpoints.device)
+        return (0.5 * (m2i + i2m) * vv).sum(0) / vv.sum()
     if smooth:
         inside = _lookup_bilinear(obs.blurred.to(dt), px, py)
     else:
@@ -306,6 +376,9 @@ class SilhouetteLikelihood(Likelihood):
         blur: std (pixels) of the mask blur of the smooth variant (default 1.5 when smooth).
         axis_samples, across_samples: grid of points inside each projected capsule.
         tau: width (pixels) of the smooth coverage test.
+        distance: robust scale (pixels) of the distance version (differentiable, zero where
+            model and masks agree; see the module docstring); needs ``smooth=True``, and then
+            replaces the blurred lookups and the sigmoid coverage. ``None``: not used.
 
     ``requires = ("silhouettes",)``; ``prepare(frame)`` samples the foreground once per frame
     (views flagged in ``frame.view_dropped`` and empty masks are excluded).
@@ -315,8 +388,18 @@ class SilhouetteLikelihood(Likelihood):
 
     def __init__(self, body, rig, smooth: bool = False, fg_samples: int = 64,
                  blur: float | None = None, axis_samples: int = 5, across_samples: int = 3,
-                 tau: float = 1.5):
+                 tau: float = 1.5, distance: float | None = None):
         super().__init__()
+        if distance is not None:
+            if isinstance(distance, bool) or not isinstance(distance, (int, float)) \
+                    or not math.isfinite(distance) or distance <= 0:
+                raise ValueError(f"distance: expected a finite number of pixels > 0 or None, "
+                                 f"got {distance!r}")
+            if not smooth:
+                raise ValueError("distance: the distance version is a differentiable term; "
+                                 "set smooth: true with it")
+            distance = float(distance)
+        self.distance = distance
         if not isinstance(fg_samples, int) or isinstance(fg_samples, bool) or fg_samples < 1:
             raise ValueError(f"fg_samples: expected an int >= 1, got {fg_samples!r}")
         if axis_samples < 1 or across_samples < 1:
@@ -338,8 +421,10 @@ class SilhouetteLikelihood(Likelihood):
         view_valid = None
         if getattr(frame, "view_dropped", None) is not None:
             view_valid = ~frame.view_dropped.bool()
-        return prepare_silhouettes(frame.silhouettes, self.fg_samples, blur=self.blur,
-                                   view_valid=view_valid, dtype=self.body.radii.dtype)
+        return prepare_silhouettes(frame.silhouettes, self.fg_samples,
+                                   blur=0.0 if self.distance else self.blur,
+                                   view_valid=view_valid, dtype=self.body.radii.dtype,
+                                   distance=self.distance is not None)
 
     def evidence(self, observation: SilhouetteObservation) -> bool:
         return bool(observation.view_valid.any())
@@ -347,9 +432,11 @@ class SilhouetteLikelihood(Likelihood):
     def energy(self, poses, observation: SilhouetteObservation) -> torch.Tensor:
         return silhouette_energy(poses.endpoints(self.body), self.body.radii, self.rig,
                                  observation, self.smooth, self.axis_samples,
-                                 self.across_samples, self.tau)
+                                 self.across_samples, self.tau, self.distance)
 
     def extra_repr(self) -> str:
+        if self.distance is not None:
+            return f"distance={self.distance}, fg_samples={self.fg_samples}"
         return f"smooth={self.smooth}, fg_samples={self.fg_samples}, blur={self.blur}"
 
 
