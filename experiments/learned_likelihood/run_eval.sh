@@ -26,7 +26,10 @@ for seed in ${SEEDS//,/ }; do
     fi
     case $t in
       p|g) hand=(); learned=(likelihood@tracker.likelihood=silhouette_learned) ;;
-      ls)  hand=(); learned=(likelihood@tracker.likelihood=smooth_image_orientation_learned
+      # LS's hand-crafted energy as these runs were made: the blurred silhouette term (the
+      # preset now uses the distance term; the learned variant replaces the blurred one)
+      ls)  hand=(likelihood@tracker.likelihood=smooth_image_orientation)
+           learned=(likelihood@tracker.likelihood=smooth_image_orientation_learned
                              tracker.likelihood.weights.appearance=0) ;;
     esac
     torchmocap-track -m "${common[@]}" tracker=$t seed=$seed "${hand[@]}" \

@@ -177,9 +177,14 @@ def fig10() -> str:
     fid = [("none, fidelity options", "p_fidelity_nonoise"),
            ("Gaussian, fidelity options", "p_fidelity_gaussian"),
            ("vMF, fidelity options", "p_fidelity")]
-    if all((RUNS / "fig10" / t).is_dir() for _, t in fid):
-        noises += fid
-        paper.update({t: paper[b] for (_, t), b in zip(fid, ("p_nonoise", "p_gaussian", "p"))})
+    ref = [("none, default tracker", "p_prior_refined_nonoise"),
+           ("Gaussian, default tracker", "p_prior_refined_gaussian"),
+           ("vMF, default tracker", "p_prior_refined")]
+    for extra in (fid, ref):  # optional row groups, each once all three sweeps exist
+        if all((RUNS / "fig10" / t).is_dir() for _, t in extra):
+            noises += extra
+            paper.update({t: paper[b] for (_, t), b in zip(extra, ("p_nonoise", "p_gaussian",
+                                                                     "p"))})
     res = {t: combine(runs_of("fig10", t)) for _, t in noises}
     lines = ["# Fig. 10: left-hip validation error (deg) of P with three sensor-noise models, "
              "walking clip with 5-10 deg sensor misalignment (studio), 200 x 15, 75 frames, "
@@ -195,7 +200,7 @@ def fig10() -> str:
     for label, t in noises:
         y = res[t]["ori_per_bone_frame"]["l_hip"]
         ax.plot([(i + 1) / 25 for i in range(len(y))], y, label=label,
-                ls="--" if "fidelity" in t else "-")
+                ls="--" if "fidelity" in t else ":" if "refined" in t else "-")
     ax.set_xlabel("time (s)")
     ax.set_ylabel("left hip error (deg), mean of 3 seeds")
     ax.legend(fontsize=7)

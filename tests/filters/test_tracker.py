@@ -158,7 +158,7 @@ def test_presets_are_compositions_of_the_documented_components():
     assert dict(ref.likelihood.weights) == dict(cfgs["ls"].likelihood.weights)
     assert ref.likelihood.terms.silhouette.smooth is True
     assert ref.likelihood.terms.silhouette.distance == 1.0
-    assert cfgs["ls"].likelihood.terms.silhouette.get("distance") is None  # LS keeps its blur
+    assert ref.likelihood.terms.silhouette == cfgs["ls"].likelihood.terms.silhouette  # same term
     assert ref.likelihood.terms.appearance.occlusion == "outlier"
     assert ref.inference.propagate == "particles" and ref.inference.schedule.alpha == 0.1
     pri = cfgs["p_prior"]  # p_fidelity + the temporal prior in the annealer's weights
