@@ -104,6 +104,26 @@ def test_distance_lookup_is_the_distance_to_the_nearest_foreground_pixel():
     assert bool((got[4:] >= want[4:] - 1e-9).all())
     assert got[5].item() == pytest.approx(math.hypot(6.0, 4.0) + 6.0)
     assert got[6].item() == pytest.approx(got[2].item() + 0.5)
+    # an independent implementation (scipy) on larger random masks, and an empty view
+    from scipy.ndimage import distance_transform_edt
+
+    big = torch.rand(3, 61, 83, generator=g) > 0.995
+    big[2] = False
+    got = prepare_silhouettes(big, 10, distance=True, dtype=torch.float64).outside[:, 0]
+    for c in range(2):
+        ref = torch.from_numpy(distance_transform_edt(~big[c].numpy()))
+        torch.testing.assert_close(got[c], ref)
+    assert bool((got[2] == 61 + 83).all())
+    # exact up to the 48 px window, an upper bound above it beyond
+    one = torch.zeros(1, 130, 12, dtype=torch.bool)
+    one[0, 3, 2] = True
+    far = prepare_silhouettes(one, 4, distance=True, dtype=torch.float64).outside[0, 0]
+    yy, xx = torch.meshgrid(torch.arange(130.0, dtype=torch.float64),
+                            torch.arange(12.0, dtype=torch.float64), indexing="ij")
+    true = torch.hypot(yy - 3, xx - 2)
+    near = true <= 48
+    torch.testing.assert_close(far[near], true[near])
+    assert bool((far[~near] >= true[~near] - 1e-12).all()) and bool((far[~near] > 48).all())
     for c in range(2):
         fy, fx = torch.nonzero(masks[c], as_tuple=True)
         yy, xx = torch.meshgrid(torch.arange(17.0), torch.arange(23.0), indexing="ij")
