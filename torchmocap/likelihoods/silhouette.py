@@ -146,12 +146,13 @@ def prepare_silhouettes(masks: torch.Tensor, num_samples: int = 150, blur: float
                                  pix.to(dev), pv.to(dev), valid.to(dev), outside)
 
 
-def _outside_distance(m: torch.Tensor, window: int = 48) -> torch.Tensor:
-    """Euclidean distance (pixels) of every pixel of ``m (C, H, W)`` to the nearest foreground
-    pixel, ``(C, 1, H, W)``: 0 on the foreground, exact up to ``window`` pixels and an upper bound
-    (itself more than ``window``) beyond; a view without foreground reads ``H + W``. Separable
-    and on ``m``'s device (no host round trip): the distance along each row from running
-    indices, then ``min (g(y', x)^2 + (y - y')^2)`` over ``|y - y'| <= window``."""
+def _outside_distance(m: torch.Tensor) -> torch.Tensor:
+    """Exact Euclidean distance (pixels) of every pixel of ``m (C, H, W)`` to the nearest
+    foreground pixel, ``(C, 1, H, W)``: 0 on the foreground; a view without foreground reads
+    ``H + W``. Separable and on ``m``'s device (no host round trip): the distance along each
+    row from running indices, then ``min_y' (g(y', x)^2 + (y - y')^2)`` down each column, one
+    in-place pass per row offset. The squared distances are exact integers; the root is taken
+    in float64 (the value scipy's ``distance_transform_edt`` gives, to the last bit)."""
     C, H, W = m.shape
     dev = m.device
     fg = m > 0
@@ -162,10 +163,10 @@ def _outside_distance(m: torch.Tensor, window: int = 48) -> torch.Tensor:
     g = torch.minimum(idx - last, nxt - idx).clamp_max(big).to(torch.float32)
     g2 = g * g  # exact integers in float32 (below 2^24 for images up to ~2900 pixels a side)
     out = g2.clone()
-    for d in range(1, min(window, H - 1) + 1):
+    for d in range(1, H):
         torch.minimum(out[:, d:], g2[:, :-d] + d * d, out=out[:, d:])
         torch.minimum(out[:, :-d], g2[:, d:] + d * d, out=out[:, :-d])
-    return out.to(m.dtype).sqrt()[:, None]
+    return out.double().sqrt().to(m.dtype)[:, None]
 
 
 def _robust(d: torch.Tensor, scale: float) -> torch.Tensor:
