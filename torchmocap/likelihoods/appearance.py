@@ -201,6 +201,11 @@ class AppearanceLikelihood(Likelihood):
         axial, around: surface points per capsule along and around its axis.
         occlusion: self-occlusion handling, ``"none"``, ``"rays"`` or ``"outlier"`` (see the
             module docstring).
+        min_facing: a point counts in a view only where the cosine between its normal and the
+            line of sight exceeds this (in [0, 1); 0: every facing view). Seen at a grazing
+            angle a point's pixel lies on its limb's outline and reads the background or the
+            part behind, so even the true pose pays there (opt-in: config key
+            ``+likelihood.terms.appearance.min_facing=0.5``).
 
     ``requires = ("images",)``; ``prepare(frame)`` converts the colour images once per frame
     (views flagged in ``frame.view_dropped`` are excluded).
