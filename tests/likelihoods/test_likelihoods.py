@@ -25,7 +25,7 @@ from torchmocap.likelihoods.silhouette import (
 from torchmocap.skeleton import human31
 
 sys.path.insert(0, str(Path(__file__).parent))
-from oracle import capsule_masks  # noqa: E402
+from oracle import appearance_loop, capsule_masks, surface_point  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -273,14 +273,6 @@ def test_silhouette_energy_terms_closed_form():
     assert e_extra.item() == pytest.approx(0.5 * frac_uncovered, abs=0.02)
 
 
-def _surface_point(kin, body, pattern, ep, p: int, i: int):
-    """Pattern point ``i`` of pose ``p`` computed one at a time: (capsule, position, normal)."""
-    b = int(pattern["bone"][i])
-    n = kin.rotations[p, body.parent_index[b]] @ pattern["radial"][i].float()
-    a, e = ep[p, b, 0], ep[p, b, 1]
-    return b, a + pattern["t"][i].float() * (e - a) + body.radii[b] * n, n
-
-
 def test_appearance_energy_matches_a_loop_oracle(scene):
     from torchmocap.likelihoods.appearance import (
         appearance_energy,
@@ -300,25 +292,11 @@ def test_appearance_energy_matches_a_loop_oracle(scene):
                                got)
     view_valid = torch.tensor([True, False, True, True])
     got_vv = appearance_energy(kin, body, pattern, rig, imgs, view_valid)
-    centres = rig.camera_centers()
-    ep = body.endpoints(kin)
     for p in range(3):
         for vv, out in ((None, got), (view_valid, got_vv)):
-            variances = []
-            for i in range(pattern["bone"].shape[0]):
-                b, x, n = _surface_point(kin, body, pattern, ep, p, i)
-                cols = []
-                for c in range(C):
-                    pix, _, vis = rig.project(x[None])
-                    if vv is not None and not vv[c]:
-                        continue
-                    if vis[c, 0] and float((centres[c] - x) @ n) > 0:
-                        u, v = (pix[c, 0] + 0.5).floor().long().tolist()  # nearest pixel
-                        cols.append(imgs[c, v, u].double() / 255)
-                if len(cols) >= 2:
-                    variances.append(torch.stack(cols).var(0, unbiased=False).mean())
-            assert len(variances) > 10
-            assert out[p].item() == pytest.approx(torch.stack(variances).mean().item(), abs=1e-5)
+            want, counted = appearance_loop(kin, body, pattern, rig, imgs, p, vv)
+            assert counted > 10
+            assert out[p].item() == pytest.approx(want, abs=1e-5)
 
 
 def test_appearance_pattern_layout_checked(scene):
@@ -545,13 +523,13 @@ def test_appearance_occlusion_modes_match_a_loop_oracle(scene, mode):
     s = torch.linspace(0, 1, 2001)
     hidden_views = grazing = 0
     own = pattern["bone"]
-    pts_all = torch.stack([torch.stack([_surface_point(kin, body, pattern, ep, p, i)[1]
+    pts_all = torch.stack([torch.stack([surface_point(kin, body, pattern, ep, p, i)[1]
                                         for i in range(own.shape[0])]) for p in range(2)])
     blocked = rays_blocked_by_capsules(centres, pts_all, ep, body.radii, own)
     for p in range(2):
         variances = []
         for i in range(pattern["bone"].shape[0]):
-            b, x, n = _surface_point(kin, body, pattern, ep, p, i)
+            b, x, n = surface_point(kin, body, pattern, ep, p, i)
             cols = []
             for c in range(C):
                 pix, _, vis = rig.project(x[None])
