@@ -347,10 +347,7 @@ def silhouette_energy(endpoints: torch.Tensor, radii: torch.Tensor, rig,
         uncovered = _robust(torch.relu(-margin), distance)
         fv = obs.fg_valid.to(dt)[..., None]
         i2m = (uncovered * fv).sum(1) / fv.sum(1).clamp_min(1)
-        vv = obs.view_valid.to(dt)[:, None]
-        if not bool(obs.view_valid.any()):
-            return torch.ones(endpoints.shape[0], dtype=dt, device=endpoints.device)
-        return (0.5 * (m2i + i2m) * vv).sum(0) / vv.sum()
+        return _over_views(m2i, i2m, obs.view_valid)
     if smooth:
         inside = _lookup_bilinear(obs.blurred.to(dt), px, py)
     else:
@@ -365,10 +362,15 @@ def silhouette_energy(endpoints: torch.Tensor, radii: torch.Tensor, rig,
         covered = (margin > 0).to(dt)
     fv = obs.fg_valid.to(dt)[..., None]  # (C, G, 1)
     i2m = 1 - (covered * fv).sum(1) / fv.sum(1).clamp_min(1)  # (C, P)
+    return _over_views(m2i, i2m, obs.view_valid)
 
-    vv = obs.view_valid.to(dt)[:, None]
-    if not bool(obs.view_valid.any()):  # no usable view: uninformative, never a perfect 0
-        return torch.ones(endpoints.shape[0], dtype=dt, device=endpoints.device)
+
+def _over_views(m2i: torch.Tensor, i2m: torch.Tensor, view_valid: torch.Tensor) -> torch.Tensor:
+    """``V_silh (P,)``: the mean over usable views of ``(m2i + i2m) / 2`` (each ``(C, P)``); 1
+    for every particle without any usable view (uninformative, never a perfect 0)."""
+    if not bool(view_valid.any()):
+        return torch.ones(m2i.shape[1], dtype=m2i.dtype, device=m2i.device)
+    vv = view_valid.to(m2i.dtype)[:, None]
     return (0.5 * (m2i + i2m) * vv).sum(0) / vv.sum()
 
 
