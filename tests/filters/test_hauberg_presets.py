@@ -59,3 +59,27 @@ def test_presets_track_better_than_holding_the_first_pose(walk_stereo, preset):
     gain = [[(h - e) / (h - f) for e, h, f in zip(err, held, floor)] for err in errs]
     assert min(min(g) for g in gain) > 0.1, (preset, errs, held, floor)
     assert sum(g[1] for g in gain) / 3 > 0.15, (preset, errs, held, floor)
+
+
+def test_the_tracker_hands_its_last_estimates_to_a_speed_adaptive_proposal(walk_stereo,
+                                                                          monkeypatch):
+    from torchmocap.proposals import SpatialPriorProposal
+
+    seq, rt = walk_stereo
+    seen = []
+    spread = SpatialPriorProposal._spread
+
+    def spy(self, context):
+        h = context.extras.get("history")
+        seen.append(None if h is None else tuple(h.shape))
+        return spread(self, context)
+
+    monkeypatch.setattr(SpatialPriorProposal, "_spread", spy)
+    tr = build_tracker(tracker_config("hauberg_spatial", ["tracker.num_particles=20",
+                                                          "tracker.proposal.speed_gain=1.0"]),
+                       rt, seed=0)
+    assert tr.proposal.speed_gain == 1.0
+    tr.run(seq, progress=False, stop_after=4)
+    D = rt.skeleton.num_dofs
+    # frame 1 sees the first pose only, then two, then the last three estimates
+    assert seen[:3] == [(1, D), (2, D), (3, D)]

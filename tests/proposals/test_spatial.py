@@ -275,3 +275,56 @@ def test_point_cloud_gradcheck(scene):
 
     assert torch.autograd.gradcheck(f, (x,), eps=1e-6, atol=1e-4)
     assert math.isfinite(float(f(x.detach())))
+
+
+def test_speed_gain_widens_the_spread_of_the_joints_that_moved():
+    sk = human31()
+    a = sk.zero_pose()
+    b = a.clone()
+    angle = 0.6
+    b[sk.dof_index("r_elbow_flex")] = angle  # only the right forearm (wrist, hand) moves
+    prop = SpatialPriorProposal(sk, position_std=0.03, joints="upper_body", speed_gain=2.0)
+    names = [sk.joint_names[j] for j in prop.joint_index.tolist()]
+    std = prop._spread(ProposalContext(b, extras={"history": torch.stack([a, a, b])}))
+    # closed form: the wrist turns about the elbow's hinge (perpendicular to the forearm), so
+    # it moves by the chord 2 l sin(angle / 2) of the forearm's length l
+    pos = sk(a[None]).positions[0]
+    fore = float((pos[sk.joint_index("r_wrist")] - pos[sk.joint_index("r_elbow")]).norm())
+    chord = 2 * fore * math.sin(angle / 2)
+    i = names.index("r_wrist")
+    assert float(std[i]) == pytest.approx(math.hypot(0.03, 2.0 * chord), rel=1e-4)
+    assert float(std[names.index("r_hand")]) > float(std[i])
+    still = [k for k, n in enumerate(names) if n not in ("r_wrist", "r_hand")]
+    assert torch.allclose(std[still], torch.full((len(still),), 0.03), atol=1e-6)
+    # no history of two estimates (the first frame), or no gain: the fixed spread
+    for ctx, gain in [(ProposalContext(b, extras={"history": b[None]}), 2.0),
+                      (ProposalContext(b), 2.0),
+                      (ProposalContext(b, extras={"history": torch.stack([a, b])}), 0.0)]:
+        p = SpatialPriorProposal(sk, position_std=0.03, joints="upper_body", speed_gain=gain)
+        assert torch.equal(p._spread(ctx), p.std)
+
+
+def test_speed_gain_draws_scatter_the_moving_hand_wider():
+    sk = human31()
+    a = sk.zero_pose()
+    a[sk.dof_index("l_shoulder_abd")] = 0.5
+    b = a.clone()
+    b[sk.dof_index("r_elbow_flex")] = 0.8
+    ctx = ProposalContext(b, extras={"history": torch.stack([a, b])})
+
+    def spread(gain, joint):
+        p = SpatialPriorProposal(sk, position_std=0.02, joints="upper_body", speed_gain=gain)
+        x = p.sample(ctx, 400, torch.Generator().manual_seed(1)).particles
+        j = sk.joint_index(joint)
+        return float((sk(x).positions[:, j] - sk(b[None]).positions[0, j]).norm(dim=-1).median())
+
+    # the right hand moved ~20 cm in the last frame: its cloud widens several-fold; the left
+    # hand did not move: its cloud stays (up to what the projection couples through the chest)
+    assert spread(1.0, "r_hand") > 3 * spread(0.0, "r_hand")
+    assert spread(1.0, "l_hand") < 1.3 * spread(0.0, "l_hand")
+
+
+@pytest.mark.parametrize("gain", [-0.1, float("nan"), float("inf"), True, "1"])
+def test_speed_gain_rejects_bad_values(gain):
+    with pytest.raises(ValueError, match="speed_gain"):
+        SpatialPriorProposal(human31(), speed_gain=gain)

@@ -387,7 +387,8 @@ class Tracker(nn.Module):
         context = self._context(pred, frame)
         # the previous frame's particle set and whatever the inference carries between frames
         context.extras.update(particles=state.particles, log_weights=state.log_weights,
-                              carry=state.carry, last_estimate=state.history[-1])
+                              carry=state.carry, last_estimate=state.history[-1],
+                              history=state.history)
         est, res, terms = self._infer(context, frame, g, energy)
         info: dict[str, Any] = {"frame": state.frame + 1, "seconds": time.perf_counter() - t0,
                                 "energy": terms, **res.info}

@@ -195,14 +195,23 @@ class SpatialPriorProposal(Proposal):
         iterations, tol, prior_weight: projection settings
             (:func:`~torchmocap.ik.project_to_skeleton`).
         default_std: see ``position_std``.
+        speed_gain: each joint's std grows with its speed over the last two estimates
+            (``context.extras["history"]``): ``σ_l' = sqrt(σ_l² + (speed_gain · |F_l(θ_{t−1}) −
+            F_l(θ_{t−2})|)²)`` — a hand moving 10 cm per frame gets a wide cloud, a shoulder
+            moving 1 cm keeps ``σ_l``. 0 (default): the paper's fixed spread. The spread is the
+            transition prior's too (the SIR weights assume the proposal's prior is the model's).
     """
 
     def __init__(self, skeleton, position_std: float | Mapping[str, float] = 0.03,
                  joints: str | Sequence[str] | None = "all",
                  criteria: Sequence[JointCriterion] = (), max_tries: int = 50,
                  iterations: int = 15, tol: float = 1e-3, prior_weight: float = 1e-3,
-                 default_std: float = 0.03) -> None:
+                 default_std: float = 0.03, speed_gain: float = 0.0) -> None:
         super().__init__()
+        if isinstance(speed_gain, bool) or not isinstance(speed_gain, (int, float)) \
+                or not (math.isfinite(speed_gain) and speed_gain >= 0):
+            raise ValueError(f"speed_gain: expected a finite number >= 0, got {speed_gain!r}")
+        self.speed_gain = float(speed_gain)
         if isinstance(max_tries, bool) or not isinstance(max_tries, int) or max_tries < 1:
             raise ValueError(f"max_tries: expected an int >= 1, got {max_tries!r}")
         for c in criteria:
@@ -255,7 +264,7 @@ class SpatialPriorProposal(Proposal):
         base = select_ancestors(context, num, self.num_dofs, generator)
         sk = self.skeleton
         mu = sk(base, check_finite=False).positions[:, self.joint_index]  # (P, L, 3)
-        std = self.std.to(mu)[None, :, None] * float(context.scale)
+        std = self._spread(context).to(mu)[None, :, None] * float(context.scale)
         P, L = mu.shape[:2]
         x = mu + torch.randn(mu.shape, generator=generator, dtype=mu.dtype,
                              device=mu.device) * std
@@ -284,6 +293,18 @@ class SpatialPriorProposal(Proposal):
         stats["projection_residual_mm"] = float(res.residual.mean()) * 1000
         stats["seconds"] = time.perf_counter() - t0
         return Proposed(particles=theta, stats=stats)
+
+    def _spread(self, context: ProposalContext) -> torch.Tensor:
+        """Per-joint std ``(L,)``: ``position_std``, widened by ``speed_gain`` times each
+        joint's displacement between the last two estimates when the tracker passes them."""
+        std = self.std
+        history = context.extras.get("history")
+        if self.speed_gain == 0 or history is None or history.shape[0] < 2:
+            return std
+        with torch.no_grad():
+            pos = self.skeleton(history[-2:], check_finite=False).positions[:, self.joint_index]
+            speed = (pos[1] - pos[0]).norm(dim=-1).to(std)
+        return torch.sqrt(std.square() + (self.speed_gain * speed).square())
 
     def _reject(self, x, mu, std, active, generator):
         """Per-joint rejection sampling, in rounds of growing batches (1, 2, 4, ... candidates
@@ -329,7 +350,8 @@ class SpatialPriorProposal(Proposal):
 
     def extra_repr(self) -> str:
         return (f"joints={self.joint_index.numel()}, free_dofs={self.free.numel()}, "
-                f"criteria={[c.name for c in self.criteria]}, max_tries={self.max_tries}")
+                f"criteria={[c.name for c in self.criteria]}, max_tries={self.max_tries}, "
+                f"speed_gain={self.speed_gain}")
 
 
 class PoseInSilhouette:
