@@ -114,3 +114,16 @@ def test_bad_output_settings_fail_before_the_track(tmp_path, override, key):
     with pytest.raises(ValueError, match=key.replace(".", r"\.")):
         run(cfg, tmp_path)
     assert not (tmp_path / "metrics.json").exists()
+
+
+def test_refine_statistics_are_averaged_over_the_tracked_frames():
+    from torchmocap.cli.track import _diagnostics
+
+    infos = [{"initial": True},
+             {"refine": {"start_energy": 3.0, "final_energy": 1.0, "start": 1}},
+             {"refine": {"start_energy": 5.0, "final_energy": 2.0, "start": 0}},
+             {"ess": [4.0]}]
+    m = _diagnostics(infos)["refine_mean"]
+    # frame 0 (the initial pose) is not a tracked frame; frames without a refine stage are
+    # not averaged in
+    assert m == {"final_energy": 1.5, "start": 0.5, "start_energy": 4.0}

@@ -138,6 +138,59 @@ def test_refine_descends_from_the_annealed_estimate_and_keeps_the_annealers_part
         AnnealedInference(refine="adam")
 
 
+def _tilted_double_well(x):
+    """``(x0² − 1)² + 0.3 x0 + Σ_{i>0} x_i²``: global minimum near x0 = −1.04, a local one
+    near x0 = +0.96."""
+    return (x[..., 0] ** 2 - 1) ** 2 + 0.3 * x[..., 0] + (x[..., 1:] ** 2).sum(-1)
+
+
+def test_local_inference_descends_every_start_and_keeps_the_lowest():
+    from types import SimpleNamespace
+
+    box = SimpleNamespace(lower=torch.full((3,), -3.0, dtype=F64),
+                          upper=torch.full((3,), 3.0, dtype=F64))
+    loc = LocalInference(box, iterations=300, lr=0.02)
+    prop = GaussianDiffusionProposal(torch.full((3,), 0.1))
+    one = loc(_tilted_double_well, prop, WeightedMeanEstimator(),
+              ProposalContext(torch.tensor([0.9, 0.2, -0.1], dtype=F64)), 1)
+    assert float(one.estimate[0]) == pytest.approx(0.96, abs=0.02)  # the local minimum
+    starts = torch.tensor([[0.9, 0.2, -0.1], [-0.8, 0.1, 0.3]], dtype=F64)
+    two = loc(_tilted_double_well, prop, WeightedMeanEstimator(), ProposalContext(starts), 1)
+    assert float(two.estimate[0]) == pytest.approx(-1.04, abs=0.02)  # the global one
+    assert two.particles.shape == (2, 3) and two.info["start"] == 1
+    assert two.info["final_energy"] == pytest.approx(
+        float(_tilted_double_well(two.estimate)))
+
+
+def test_refine_from_the_prediction_too_leaves_the_annealers_wrong_basin():
+    """The previous frame's particles sit in the local basin (x0 ≈ +1), the prediction in the
+    global one: refined from the annealed estimate alone the track stays in the local minimum;
+    with ``refine_from="estimate_and_prediction"`` the lower of the two descents is kept."""
+    from types import SimpleNamespace
+
+    box = SimpleNamespace(lower=torch.full((3,), -3.0, dtype=F64),
+                          upper=torch.full((3,), 3.0, dtype=F64))
+    prop = GaussianDiffusionProposal(torch.full((3,), 0.05))
+    pred = torch.tensor([-0.9, 0.0, 0.0], dtype=F64)
+    for seed in range(3):
+        g = torch.Generator().manual_seed(seed)
+        parts = torch.tensor([1.0, 0.0, 0.0], dtype=F64) + 0.05 * torch.randn(
+            50, 3, generator=g, dtype=F64)
+        ctx = ProposalContext(pred, extras={"particles": parts, "last_estimate": pred})
+        x0 = {}
+        for start in AnnealedInference.REFINE_FROM:
+            inf = AnnealedInference(layers=3, propagate="particles", refine_from=start,
+                                    refine=LocalInference(box, iterations=300, lr=0.02))
+            res = inf(_tilted_double_well, prop, WeightedMeanEstimator(), ctx, 50,
+                      torch.Generator().manual_seed(seed))
+            x0[start] = float(res.estimate[0])
+            assert float(res.particles[:, 0].mean()) > 0.5  # the annealer's set: kept as is
+        assert x0["estimate"] == pytest.approx(0.96, abs=0.05), x0
+        assert x0["estimate_and_prediction"] == pytest.approx(-1.04, abs=0.05), x0
+    with pytest.raises(ValueError, match="refine_from"):
+        AnnealedInference(refine_from="prediction")
+
+
 def test_spread_diffusion_closed_form():
     x = torch.tensor([[0.0, 1.0], [2.0, 1.0], [4.0, 1.0]], dtype=F64)
     d = SpreadDiffusion(rho=0.5, decay=0.5, delta=1e-8)

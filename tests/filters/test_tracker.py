@@ -167,10 +167,14 @@ def test_presets_are_compositions_of_the_documented_components():
             pri.inference.prior_mean) == (40.0, 0.1, "last_estimate")
     for key in ("proposal", "likelihood", "estimator", "predictor"):
         assert pri[key] == fid[key]
-    both = copy.deepcopy(cfgs["p_prior_refined"])  # p_refined + p_prior's prior, nothing else
+    # p_refined + p_prior's prior + the descent also started from the prediction, nothing else
+    both = copy.deepcopy(cfgs["p_prior_refined"])
     for key in ("prior_std_deg", "prior_translation_std", "prior_mean"):
         assert both.inference[key] == pri.inference[key]
         both.inference[key] = ref.inference[key]
+    assert (ref.inference.refine_from, both.inference.refine_from) == (
+        "estimate", "estimate_and_prediction")
+    both.inference.refine_from = ref.inference.refine_from
     both.name = "p_refined"
     assert both == ref
     for name, c in cfgs.items():

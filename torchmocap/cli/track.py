@@ -409,6 +409,11 @@ def _diagnostics(infos: list) -> dict:
             print("torchmocap-track: warning: the data-driven proposal fell back to its prior "
                   "(no usable data) in frames: "
                   + ", ".join(f"{k} {n}" for k, n in fell.items() if n), file=sys.stderr)
+    refine = [i["refine"] for i in tracked if isinstance(i.get("refine"), dict)]
+    if refine:  # a refine stage after the annealing: energies before / after, the start kept
+        keys = sorted({k for r in refine for k in r})
+        out["refine_mean"] = {k: sum(float(r.get(k, 0.0)) for r in refine) / len(refine)
+                              for k in keys}
     rates = [i["proposal"]["acceptance_rate"] for i in tracked
              if "acceptance_rate" in i.get("proposal", {})]
     if rates:

@@ -201,6 +201,10 @@ class AnnealedInference(Inference):
             "Optimization and filtering for human motion capture", IJCV 2010). Its result is
             the estimate; the particles and weights carried to the next frame stay the
             annealer's. The energy must then be differentiable (a smooth likelihood).
+        refine_from: where ``refine`` starts: ``"estimate"`` (the annealed estimate) or
+            ``"estimate_and_prediction"`` (also the prediction ``context.previous``, the LS
+            baseline's start; the lower-energy descent is kept — the annealer's basin or the
+            one local descent from the dynamics finds).
         prior_std_deg: optional Gaussian temporal prior about ``θ̂`` (see ``prior_mean``): every
             layer's weights are multiplied by ``exp(−½ Σ (wrap(θ − θ̂) / σ)²)`` — not tempered by β —
             with ``σ`` = this angle on every rotation DoF and ``prior_translation_std`` metres on
@@ -218,14 +222,19 @@ class AnnealedInference(Inference):
     """
 
     PROPAGATE = ("prediction", "particles")
+    REFINE_FROM = ("estimate", "estimate_and_prediction")
 
     def __init__(self, layers: int = 15, schedule="ess", selection="multinomial",
                  diffusion=None, rounds: int = 1, round_scale: float = 0.5,
                  propagate: str = "prediction", motion_scale: float = 0.0,
                  refine: Inference | None = None, prior_std_deg: float | None = None,
                  prior_translation_std: float = 0.1, prior_mean: str | float = "prediction",
-                 skeleton=None) -> None:
+                 skeleton=None, refine_from: str = "estimate") -> None:
         super().__init__()
+        if refine_from not in self.REFINE_FROM:
+            raise ValueError(f"refine_from: expected one of {self.REFINE_FROM}, got "
+                             f"{refine_from!r}")
+        self.refine_from = refine_from
         names = {"prediction": 1.0, "last_estimate": 0.0}
         if isinstance(prior_mean, str) and prior_mean in names:
             blend = names[prior_mean]
@@ -364,7 +373,10 @@ class AnnealedInference(Inference):
                 best = (cand, math.nan, res)
         est, _, res = best
         if self.refine is not None:
-            ctx = dataclasses.replace(context, previous=est.detach(), log_weights=None)
+            starts = est.detach()
+            if self.refine_from == "estimate_and_prediction" and context.previous.dim() == 1:
+                starts = torch.stack([starts, context.previous.detach().to(starts)])
+            ctx = dataclasses.replace(context, previous=starts, log_weights=None)
             ref = self.refine(energy, proposal, estimator, ctx, 1, generator)
             info["refine"] = {k: v for k, v in ref.info.items()
                               if isinstance(v, (int, float)) and not isinstance(v, bool)}
@@ -395,6 +407,9 @@ class LocalInference(Inference):
         lr: Adam learning rate (radians / metres per step).
         starts: ``1`` = the prediction only; ``n > 1`` adds ``n − 1`` proposal draws around it
             and keeps the lowest-energy result.
+
+    ``context.previous`` is the start ``(D,)``, or several ``(K, D)`` (all descended, in one
+    batch; the lowest final energy is the estimate).
     """
 
     def __init__(self, skeleton, method: str = "adam", iterations: int = 40, lr: float = 0.02,
@@ -416,16 +431,18 @@ class LocalInference(Inference):
                 generator: torch.Generator | None = None) -> InferenceResult:
         t0 = time.perf_counter()
         prev = context.previous
-        x0 = prev[None] if prev.dim() == 1 else prev[:1]
+        x0 = prev[None] if prev.dim() == 1 else prev
         if self.starts > 1:
-            extra = proposal.sample(context, self.starts - 1, generator).particles
+            ctx = context if prev.dim() == 1 else dataclasses.replace(context, previous=prev[0])
+            extra = proposal.sample(ctx, self.starts - 1, generator).particles
             x0 = torch.cat([x0, extra.to(x0.dtype)])
         lo, hi = self.lower.to(x0.dtype), self.upper.to(x0.dtype)
         res = minimise_local(energy, x0, method=self.method, iterations=self.iterations,
                              lower=lo, upper=hi, lr=self.lr)
         i = int(torch.argmin(res.energy))
         info = {"final_energy": float(res.energy[i]), "start_energy": float(res.trace[0, i]),
-                "iterations": res.iterations, "seconds_inference": time.perf_counter() - t0}
+                "iterations": res.iterations, "start": i,
+                "seconds_inference": time.perf_counter() - t0}
         return InferenceResult(estimate=res.x[i].detach(), particles=res.x.detach(),
                                log_weights=None, info=info)
 
