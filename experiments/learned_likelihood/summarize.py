@@ -16,7 +16,8 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 #: run-directory suffix -> label; the first is the reference of the change columns
 ARMS = {"handcrafted": "hand-crafted", "learned": "learned (2 V_silh + learned, bundled)",
-        "learnedimage": "learned variant B (image + learned)"}
+        "learnedimage": "learned variant B (image + learned)",
+        "distance": "hand-crafted, distance silhouette term (the current preset)"}
 def load() -> dict:
     rows = defaultdict(list)  # (tracker, likelihood, clip) -> [(seed, ori, mpjpe, spf)]
     for p in sorted((HERE / "runs").rglob("metrics.json")):
