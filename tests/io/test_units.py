@@ -99,3 +99,38 @@ def test_real_cmu21_renamed_reads_like_its_family(tmp_path, cmu):
     b, msgs = _read(tmp_path / "mix.bvh")
     assert b.skeleton_family is None and b.unit == 0.01
     torch.testing.assert_close(human31_positions(b), human31_positions(a), atol=1e-9, rtol=0)
+
+
+def test_feature_child_in_cm_is_not_read_as_inches(tmp_path):
+    """A child-sized subject (0.85 m ankle-head chain, ~1 m tall) written in cm: inches would
+    make it a 2.2 m chain (no person's), so cm is read and the warning says "a child's size"."""
+    clip = unseen_family_clip("mixamo")
+    scale = 0.85 / chain_height(clip)
+    clip.offsets = clip.offsets * scale
+    clip.root_translation = clip.root_translation * scale
+    path = write_bvh(tmp_path / "child.bvh", clip, unit=0.01, precision=6)
+    got, msgs = _read(path)
+    assert got.unit == 0.01
+    assert any("a child's size" in m and "ambiguous" not in m for m in msgs), msgs
+    torch.testing.assert_close(human31_positions(got), human31_positions(clip), atol=1e-5,
+                               rtol=0)
+
+
+@pytest.mark.parametrize("chain,unit,alt", [(1.85, 0.0254 / 0.45, "in"), (0.76, 0.01, "in")])
+def test_feature_ambiguous_sizes_are_reported(tmp_path, chain, unit, alt):
+    """Where two units both give a person's size — a 1.85 m chain in CMU units is also a 0.83 m
+    child in inches; a 0.76 m child in cm is also a 1.93 m adult in inches — the reading nearest
+    an adult's is taken and the other is named in the guess and the warning."""
+    clip = unseen_family_clip("mixamo")
+    scale = chain / chain_height(clip)
+    clip.offsets = clip.offsets * scale
+    clip.root_translation = clip.root_translation * scale
+    path = write_bvh(tmp_path / "amb.bvh", clip, unit=unit, precision=6)
+    got, msgs = _read(path)
+    guess = infer_length_unit(read_bvh(path, unit=1.0))
+    assert [n for n, _ in guess.alternatives] == [alt] or guess.name == alt
+    assert any("ambiguous: also" in m for m in msgs), msgs
+    if chain > 1.5:  # the adult reading is the written one
+        assert got.unit == pytest.approx(unit, rel=1e-12) and not guess.child_sized
+    else:  # the child in cm is read as an adult in inches: said, not silent
+        assert guess.name == "in" and guess.alternatives == (("cm", 0.01),)

@@ -4,10 +4,13 @@ BVH files carry no unit. A known skeleton family's map supplies it; for any othe
 reader measures the rest skeleton — the straightened ankle -> hip -> spine -> head-end chain of
 :func:`~torchmocap.io.skeleton_maps.chain_height` (1.22-1.79 m for the adults of CMU and
 HDM05), which needs the joints mapped onto human31 (by a map or by their names) — and picks the
-common unit that makes it an adult's. A skeleton that does not map onto human31 gets no guess.
-The candidates differ by at least x2.2, and an adult's chain varies by about x1.25 either
-side of 1.5 m, so the pick is unambiguous for adults; for a child or a figure far from human
-size pass the unit explicitly (``unit=`` / ``data.clip.unit``).
+common unit that makes it a person's: 0.75-1.95 m, from a small child to the tallest adults
+(1.125-1.95 m counts as an adult). A skeleton that does not map onto human31 gets no guess.
+The candidates differ by at least x2.2, and an adult's chain varies by about x1.25 either side
+of 1.5 m, so one unit usually fits; where two do (a tall adult in CMU units is also a child in
+inches, a small child in cm a giant in inches) the reading nearest an adult's 1.5 m is taken and
+the others are reported (``UnitGuess.alternatives``) — pass the unit explicitly (``unit=`` /
+``data.clip.unit``) for a child or a figure far from human size.
 """
 
 from __future__ import annotations
@@ -28,8 +31,10 @@ LENGTH_UNITS: dict[str, float] = {
 
 #: Reference size in metres of the ankle-hip-head chain (geometric middle of 1.22-1.79 m).
 _CHAIN_M = 1.5
-#: accepted range of the measured size after conversion, as a factor of the reference
-_PLAUSIBLE = (0.6, 1.6)
+#: a person's ankle-head chain in metres: a small child (~0.9 m tall) to the tallest adults
+_PERSON = (0.75, 1.95)
+#: the adults' part of that range (1.22-1.79 m measured for CMU and HDM05, with margin)
+_ADULT_MIN = 1.125
 
 
 @dataclass(frozen=True)
@@ -41,11 +46,19 @@ class UnitGuess:
         name: the unit's name in :data:`LENGTH_UNITS` (``None`` with ``unit``).
         size: the ankle-head chain in file units (``None`` when the joints do not map onto
             human31).
+        alternatives: the other units of :data:`LENGTH_UNITS` that also give a person's size,
+            as ``(name, metres per unit)`` pairs (empty when the guess is unambiguous).
     """
 
     unit: float | None
     name: str | None
     size: float | None
+    alternatives: tuple[tuple[str, float], ...] = ()
+
+    @property
+    def child_sized(self) -> bool:
+        """Whether the guess makes the subject smaller than an adult (a child, or a wrong unit)."""
+        return self.unit is not None and self.size * self.unit < _ADULT_MIN
 
     def describe(self) -> str:
         if self.size is None:
@@ -53,8 +66,14 @@ class UnitGuess:
         if self.unit is None:
             return (f"its ankle-head chain measures {self.size:.4g} file units, which no common "
                     f"unit ({', '.join(LENGTH_UNITS)}) makes a person's size")
-        return (f"{self.unit:g} m per unit ({self.name}): its ankle-head chain measures "
+        text = (f"{self.unit:g} m per unit ({self.name}): its ankle-head chain measures "
                 f"{self.size:.4g} units = {self.size * self.unit:.2f} m")
+        if self.child_sized:
+            text += ", a child's size"
+        if self.alternatives:
+            other = " or ".join(f"{self.size * u:.2f} m in {n}" for n, u in self.alternatives)
+            text += f" (ambiguous: also {other})"
+        return text
 
 
 def infer_length_unit(clip, skeleton_map=None) -> UnitGuess:
@@ -67,7 +86,7 @@ def infer_length_unit(clip, skeleton_map=None) -> UnitGuess:
 
     Returns:
         :class:`UnitGuess`; ``unit`` is ``None`` when the joints do not map onto human31 or no
-        unit of :data:`LENGTH_UNITS` puts the chain within x0.6-x1.6 of an adult's 1.5 m.
+        unit of :data:`LENGTH_UNITS` puts the chain within a person's 0.75-1.95 m.
     """
     from torchmocap.io.errors import SkeletonMapError
     from torchmocap.io.skeleton_maps import chain_height
@@ -79,8 +98,10 @@ def infer_length_unit(clip, skeleton_map=None) -> UnitGuess:
         return UnitGuess(None, None, None)
     if not (math.isfinite(size) and size > 0):
         return UnitGuess(None, None, size)
-    name, unit = min(LENGTH_UNITS.items(), key=lambda kv: abs(math.log(size * kv[1] / _CHAIN_M)))
-    lo, hi = _PLAUSIBLE
-    if not lo <= size * unit / _CHAIN_M <= hi:
+    lo, hi = _PERSON
+    fits = sorted(((n, u) for n, u in LENGTH_UNITS.items() if lo <= size * u <= hi),
+                  key=lambda kv: abs(math.log(size * kv[1] / _CHAIN_M)))
+    if not fits:
         return UnitGuess(None, None, size)
-    return UnitGuess(unit, name, size)
+    (name, unit), *others = fits
+    return UnitGuess(unit, name, size, tuple(others))
