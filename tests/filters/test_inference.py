@@ -177,18 +177,40 @@ def test_refine_from_the_prediction_too_leaves_the_annealers_wrong_basin():
         parts = torch.tensor([1.0, 0.0, 0.0], dtype=F64) + 0.05 * torch.randn(
             50, 3, generator=g, dtype=F64)
         ctx = ProposalContext(pred, extras={"particles": parts, "last_estimate": pred})
-        x0 = {}
-        for start in AnnealedInference.REFINE_FROM:
+        x0, starts = {}, {}
+        for start in ("estimate", "estimate_and_prediction", ("last_estimate", "estimate"),
+                      ("estimate", "prediction", "last_estimate"), "prediction"):
             inf = AnnealedInference(layers=3, propagate="particles", refine_from=start,
                                     refine=LocalInference(box, iterations=300, lr=0.02))
             res = inf(_tilted_double_well, prop, WeightedMeanEstimator(), ctx, 50,
                       torch.Generator().manual_seed(seed))
             x0[start] = float(res.estimate[0])
+            starts[start] = res.info["refine"]["start"]
             assert float(res.particles[:, 0].mean()) > 0.5  # the annealer's set: kept as is
         assert x0["estimate"] == pytest.approx(0.96, abs=0.05), x0
-        assert x0["estimate_and_prediction"] == pytest.approx(-1.04, abs=0.05), x0
-    with pytest.raises(ValueError, match="refine_from"):
-        AnnealedInference(refine_from="prediction")
+        for start in ("estimate_and_prediction", ("last_estimate", "estimate"),
+                      ("estimate", "prediction", "last_estimate"), "prediction"):
+            assert x0[start] == pytest.approx(-1.04, abs=0.05), x0
+        # the index of the winning start follows the order of refine_from
+        assert starts["estimate_and_prediction"] == 1
+        assert starts[("last_estimate", "estimate")] == 0
+        assert starts[("estimate", "prediction", "last_estimate")] in (1, 2)
+    for bad in ("predicted", ("estimate", "estimate"), ()):
+        with pytest.raises(ValueError, match="refine_from"):
+            AnnealedInference(refine_from=bad)
+
+
+def test_refine_starts_are_stacked_in_the_order_asked_for():
+    est, pred, last = (torch.full((3,), v, dtype=F64) for v in (1.0, 2.0, 3.0))
+    inf = AnnealedInference(refine_from=["last_estimate", "estimate", "prediction"])
+    ctx = ProposalContext(pred, extras={"last_estimate": last})
+    assert inf._refine_starts(est, ctx)[:, 0].tolist() == [3.0, 1.0, 2.0]
+    # the first frame of a track without a last estimate, or a batched prediction: left out
+    assert inf._refine_starts(est, ProposalContext(pred))[:, 0].tolist() == [1.0, 2.0]
+    batched = ProposalContext(pred.expand(4, 3), extras={"last_estimate": last})
+    assert inf._refine_starts(est, batched)[:, 0].tolist() == [3.0, 1.0]
+    assert AnnealedInference(refine_from="prediction")._refine_starts(
+        est, ProposalContext(pred.expand(4, 3))).tolist() == est.tolist()
 
 
 def test_spread_diffusion_closed_form():

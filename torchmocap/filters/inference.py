@@ -29,6 +29,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -170,6 +171,19 @@ def _summarise(stats: list[dict]) -> dict:
     return out
 
 
+def _check_starts(refine_from, names: tuple[str, ...]) -> tuple[str, ...]:
+    """``refine_from`` as a tuple of distinct start names (see :class:`AnnealedInference`)."""
+    if isinstance(refine_from, str):
+        refine_from = (("estimate", "prediction") if refine_from == "estimate_and_prediction"
+                       else (refine_from,))
+    starts = tuple(refine_from)
+    bad = [n for n in starts if n not in names]
+    if not starts or bad or len(set(starts)) != len(starts):
+        raise ValueError(f"refine_from: expected distinct names among {names} (or "
+                         f"'estimate_and_prediction'), got {refine_from!r}")
+    return starts
+
+
 class AnnealedInference(Inference):
     """Annealed particle optimisation with a proposal as the mutation kernel.
 
@@ -201,10 +215,13 @@ class AnnealedInference(Inference):
             "Optimization and filtering for human motion capture", IJCV 2010). Its result is
             the estimate; the particles and weights carried to the next frame stay the
             annealer's. The energy must then be differentiable (a smooth likelihood).
-        refine_from: where ``refine`` starts: ``"estimate"`` (the annealed estimate) or
-            ``"estimate_and_prediction"`` (also the prediction ``context.previous``, the LS
-            baseline's start; the lower-energy descent is kept — the annealer's basin or the
-            one local descent from the dynamics finds).
+        refine_from: where ``refine`` starts — one name or a list of names among
+            ``"estimate"`` (the annealed estimate), ``"prediction"`` (the prediction
+            ``context.previous``, the LS baseline's start) and ``"last_estimate"`` (the previous
+            frame's estimate, ``context.extras["last_estimate"]``: no momentum); every start is
+            descended in one batch and the lowest final energy is kept — the annealer's basin or
+            the one a local descent from the dynamics finds. ``"estimate_and_prediction"`` is
+            short for ``["estimate", "prediction"]``.
         prior_std_deg: optional Gaussian temporal prior about ``θ̂`` (see ``prior_mean``): every
             layer's weights are multiplied by ``exp(−½ Σ (wrap(θ − θ̂) / σ)²)`` — not tempered by β —
             with ``σ`` = this angle on every rotation DoF and ``prior_translation_std`` metres on
@@ -222,19 +239,16 @@ class AnnealedInference(Inference):
     """
 
     PROPAGATE = ("prediction", "particles")
-    REFINE_FROM = ("estimate", "estimate_and_prediction")
+    REFINE_FROM = ("estimate", "prediction", "last_estimate")
 
     def __init__(self, layers: int = 15, schedule="ess", selection="multinomial",
                  diffusion=None, rounds: int = 1, round_scale: float = 0.5,
                  propagate: str = "prediction", motion_scale: float = 0.0,
                  refine: Inference | None = None, prior_std_deg: float | None = None,
                  prior_translation_std: float = 0.1, prior_mean: str | float = "prediction",
-                 skeleton=None, refine_from: str = "estimate") -> None:
+                 skeleton=None, refine_from: str | Sequence[str] = "estimate") -> None:
         super().__init__()
-        if refine_from not in self.REFINE_FROM:
-            raise ValueError(f"refine_from: expected one of {self.REFINE_FROM}, got "
-                             f"{refine_from!r}")
-        self.refine_from = refine_from
+        self.refine_from = _check_starts(refine_from, self.REFINE_FROM)
         names = {"prediction": 1.0, "last_estimate": 0.0}
         if isinstance(prior_mean, str) and prior_mean in names:
             blend = names[prior_mean]
@@ -373,9 +387,7 @@ class AnnealedInference(Inference):
                 best = (cand, math.nan, res)
         est, _, res = best
         if self.refine is not None:
-            starts = est.detach()
-            if self.refine_from == "estimate_and_prediction" and context.previous.dim() == 1:
-                starts = torch.stack([starts, context.previous.detach().to(starts)])
+            starts = self._refine_starts(est.detach(), context)
             ctx = dataclasses.replace(context, previous=starts, log_weights=None)
             ref = self.refine(energy, proposal, estimator, ctx, 1, generator)
             info["refine"] = {k: v for k, v in ref.info.items()
@@ -388,6 +400,19 @@ class AnnealedInference(Inference):
             info["seconds_per_round"] = info["seconds_inference"] / self.rounds
         return InferenceResult(estimate=est, particles=res.particles,
                                log_weights=res.log_weights, info=info)
+
+    def _refine_starts(self, est: torch.Tensor, context: ProposalContext) -> torch.Tensor:
+        """``(S, D)`` starts of the local stage, in the order of ``refine_from`` (a start the
+        context lacks — no last estimate on the first frame, a batched prediction — is left out;
+        the annealed estimate stands in when none is left)."""
+        found = {"estimate": est}
+        if context.previous.dim() == 1:
+            found["prediction"] = context.previous
+        last = context.extras.get("last_estimate")
+        if torch.is_tensor(last) and last.shape == est.shape:
+            found["last_estimate"] = last
+        rows = [found[n].detach().to(est) for n in self.refine_from if n in found]
+        return torch.stack(rows) if len(rows) > 1 else (rows[0] if rows else est)
 
     def extra_repr(self) -> str:
         return (f"layers={self.layers}, schedule={self.schedule!r}, "
