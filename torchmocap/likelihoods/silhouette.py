@@ -33,6 +33,7 @@ optimisation). Pixel ``(x, y)`` covers ``[x - 0.5, x + 0.5) x [y - 0.5, y + 0.5)
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -78,12 +79,14 @@ class SilhouetteObservation:
     outside: torch.Tensor | None = None
 
 
-def prepare_silhouettes(masks: torch.Tensor, num_samples: int = 150, blur: float = 1.5,
+def prepare_silhouettes(masks: torch.Tensor, num_samples: int = 150,
+                        blur: float | Sequence[float] | torch.Tensor = 1.5,
                         view_valid: torch.Tensor | None = None,
                         dtype: torch.dtype = torch.float32,
                         distance: bool = False) -> SilhouetteObservation:
     """Prepare ``masks (C, H, W)`` for :func:`silhouette_energy` (``distance``: also the
-    distance transform of the background, for the distance version).
+    distance transform of the background, for the distance version; ``blur``: the mask blur's
+    std in pixels, one number or one per view).
 
     The mask contract (foreground = 1): ``bool``; any numeric dtype whose values are exactly
     0 and 1; or ``uint8`` whose values are exactly 0 and 255 (8-bit image files). Anything else
@@ -132,18 +135,29 @@ def prepare_silhouettes(masks: torch.Tensor, num_samples: int = 150, blur: float
         pix[c, :k, 0] = xs[idx].to(dtype)  # pixel centres sit at integer coordinates
         pix[c, :k, 1] = ys[idx].to(dtype)
         pv[c, :k] = True
-    if blur > 0:
-        r = max(1, int(round(3 * blur)))
-        x = torch.arange(-r, r + 1, dtype=dtype, device=dev)
-        g = torch.exp(-0.5 * (x / blur) ** 2)
-        g = g / g.sum()
-        b = F.conv2d(m[:, None], g.view(1, 1, 1, -1), padding=(0, r))
-        b = F.conv2d(b, g.view(1, 1, -1, 1), padding=(r, 0))
-    else:
-        b = m[:, None]
+    blurs = [float(v) for v in torch.as_tensor(blur, dtype=torch.float64).flatten().tolist()]
+    if len(blurs) not in (1, C):
+        raise ValueError(f"blur: expected a number or one value per view ({C}), got "
+                         f"{len(blurs)} values")
+    if len(set(blurs)) == 1:
+        b = _blur(m[:, None], blurs[0])
+    else:  # per-view widths (views of different resolutions)
+        b = torch.cat([_blur(m[c:c + 1, None], blurs[c]) for c in range(C)])
     outside = _outside_distance(m).to(dev) if distance else None
     return SilhouetteObservation(m.to(dev), F.pad(m, (1, 1, 1, 1)).to(dev), b.to(dev),
                                  pix.to(dev), pv.to(dev), valid.to(dev), outside)
+
+
+def _blur(m: torch.Tensor, std: float) -> torch.Tensor:
+    """Separable Gaussian blur (std in pixels; 0 = none) of masks ``m (C, 1, H, W)``."""
+    if std <= 0:
+        return m
+    r = max(1, int(round(3 * std)))
+    x = torch.arange(-r, r + 1, dtype=m.dtype, device=m.device)
+    g = torch.exp(-0.5 * (x / std) ** 2)
+    g = g / g.sum()
+    b = F.conv2d(m, g.view(1, 1, 1, -1), padding=(0, r))
+    return F.conv2d(b, g.view(1, 1, -1, 1), padding=(r, 0))
 
 
 def _outside_distance(m: torch.Tensor) -> torch.Tensor:
@@ -169,10 +183,19 @@ def _outside_distance(m: torch.Tensor) -> torch.Tensor:
     return out.double().sqrt().to(m.dtype)[:, None]
 
 
-def _robust(d: torch.Tensor, scale: float) -> torch.Tensor:
-    """Geman-McClure ``d^2 / (d^2 + scale^2)`` of distances ``d >= 0`` (pixels)."""
+def _robust(d: torch.Tensor, scale) -> torch.Tensor:
+    """Geman-McClure ``d^2 / (d^2 + scale^2)`` of distances ``d >= 0`` (pixels); ``scale`` a
+    number or a per-view ``(C,)`` tensor (``d`` view-first)."""
+    scale = _per_view(scale, d)
     d2 = d * d
     return d2 / (d2 + scale * scale)
+
+
+def _per_view(v, like: torch.Tensor):
+    """A number as it is; a per-view ``(C,)`` tensor shaped to broadcast over ``like (C, ...)``."""
+    if isinstance(v, torch.Tensor):
+        return v.to(like).view(-1, *([1] * (like.dim() - 1)))
+    return v
 
 
 def _lookup_distance(outside: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
@@ -324,15 +347,16 @@ def _coverage_margin(q: torch.Tensor, st: _Stadiums, smooth: bool) -> torch.Tens
 
 def silhouette_energy(endpoints: torch.Tensor, radii: torch.Tensor, rig,
                       obs: SilhouetteObservation, smooth: bool = False, axis_samples: int = 5,
-                      across_samples: int = 3, tau: float = 1.5,
-                      distance: float | None = None) -> torch.Tensor:
+                      across_samples: int = 3, tau: float | torch.Tensor = 1.5,
+                      distance: float | torch.Tensor | None = None) -> torch.Tensor:
     """Silhouette disagreement ``V_silh (P,)`` in [0, 1] of capsules ``endpoints (P, B, 2, 3)``.
 
     0 means the projected capsules and the foreground agree exactly at the sampled points; see
     the module docstring for the two terms and the three versions (hard; ``smooth``;
     ``distance``, the robust scale in pixels, which needs ``obs`` prepared with
-    ``distance=True``). Without any usable view (all dropped or empty) every particle gets 1:
-    the frame carries no silhouette evidence, and it must not look like a perfect match.
+    ``distance=True``). ``tau`` and ``distance`` are numbers or per-view ``(C,)`` tensors.
+    Without any usable view (all dropped or empty) every particle gets 1: the frame carries no
+    silhouette evidence, and it must not look like a perfect match.
     """
     st = _stadiums(endpoints, radii, rig)
     dt = st.ax.dtype
@@ -357,7 +381,7 @@ def silhouette_energy(endpoints: torch.Tensor, radii: torch.Tensor, rig,
 
     margin = _coverage_margin(obs.fg_pixels, st, smooth)  # (C, G, P)
     if smooth:
-        covered = torch.sigmoid(margin / tau)
+        covered = torch.sigmoid(margin / _per_view(tau, margin))
     else:
         covered = (margin > 0).to(dt)
     fv = obs.fg_valid.to(dt)[..., None]  # (C, G, 1)
@@ -389,6 +413,10 @@ class SilhouetteLikelihood(Likelihood):
         distance: robust scale (pixels) of the distance version (differentiable, zero where
             model and masks agree; see the module docstring); needs ``smooth=True``, and then
             replaces the blurred lookups and the sigmoid coverage. ``None``: not used.
+        reference_width: the image width (pixels) that ``blur``, ``tau`` and ``distance`` are
+            given for: each view scales them by its own width / ``reference_width``, so the term
+            tolerates the same fraction of the image at any resolution (the presets give them
+            for 320-pixel-wide views). ``None``: raw pixels in every view.
 
     ``requires = ("silhouettes",)``; ``prepare(frame)`` samples the foreground once per frame
     (views flagged in ``frame.view_dropped`` and empty masks are excluded).
@@ -398,8 +426,15 @@ class SilhouetteLikelihood(Likelihood):
 
     def __init__(self, body, rig, smooth: bool = False, fg_samples: int = 64,
                  blur: float | None = None, axis_samples: int = 5, across_samples: int = 3,
-                 tau: float = 1.5, distance: float | None = None):
+                 tau: float = 1.5, distance: float | None = None,
+                 reference_width: float | None = None):
         super().__init__()
+        if reference_width is not None and (
+                isinstance(reference_width, bool) or not isinstance(reference_width, (int, float))
+                or not math.isfinite(reference_width) or reference_width <= 0):
+            raise ValueError(f"reference_width: expected a finite image width in pixels > 0 or "
+                             f"None, got {reference_width!r}")
+        self.reference_width = None if reference_width is None else float(reference_width)
         if distance is not None:
             if isinstance(distance, bool) or not isinstance(distance, (int, float)) \
                     or not math.isfinite(distance) or distance <= 0:
@@ -427,12 +462,18 @@ class SilhouetteLikelihood(Likelihood):
         self.across_samples = int(across_samples)
         self.tau = float(tau)
 
+    def view_scale(self) -> torch.Tensor | float:
+        """Per-view factor ``(C,)`` of the pixel settings (1.0 without ``reference_width``)."""
+        if self.reference_width is None:
+            return 1.0
+        return self.rig.image_size[:, 0].to(self.body.radii.dtype) / self.reference_width
+
     def prepare(self, frame) -> SilhouetteObservation:
         view_valid = None
         if getattr(frame, "view_dropped", None) is not None:
             view_valid = ~frame.view_dropped.bool()
-        return prepare_silhouettes(frame.silhouettes, self.fg_samples,
-                                   blur=0.0 if self.distance else self.blur,
+        blur = 0.0 if self.distance else self.blur * self.view_scale()
+        return prepare_silhouettes(frame.silhouettes, self.fg_samples, blur=blur,
                                    view_valid=view_valid, dtype=self.body.radii.dtype,
                                    distance=self.distance is not None)
 
@@ -440,14 +481,17 @@ class SilhouetteLikelihood(Likelihood):
         return bool(observation.view_valid.any())
 
     def energy(self, poses, observation: SilhouetteObservation) -> torch.Tensor:
+        k = self.view_scale()
         return silhouette_energy(poses.endpoints(self.body), self.body.radii, self.rig,
                                  observation, self.smooth, self.axis_samples,
-                                 self.across_samples, self.tau, self.distance)
+                                 self.across_samples, self.tau * k,
+                                 None if self.distance is None else self.distance * k)
 
     def extra_repr(self) -> str:
+        ref = "" if self.reference_width is None else f", reference_width={self.reference_width:g}"
         if self.distance is not None:
-            return f"distance={self.distance}, fg_samples={self.fg_samples}"
-        return f"smooth={self.smooth}, fg_samples={self.fg_samples}, blur={self.blur}"
+            return f"distance={self.distance}, fg_samples={self.fg_samples}{ref}"
+        return f"smooth={self.smooth}, fg_samples={self.fg_samples}, blur={self.blur}{ref}"
 
 
 def render_capsule_silhouettes(body, rig, theta: torch.Tensor, chunk: int = 20000
