@@ -190,8 +190,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--runs", type=Path, default=None,
                     help="the sweep's run directory (default runs/<sweep>)")
     ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--particles", type=int, nargs="+", default=None,
+                    help="particle counts to tabulate (default: the sweep's own)")
     args = ap.parse_args(argv)
-    spec = SWEEPS[args.sweep]
+    spec = dict(SWEEPS[args.sweep])
+    if args.particles:
+        spec["particles"] = sorted(set(args.particles))
     runs_dir = args.runs or HERE / "runs" / args.sweep
     runs, missing = load(runs_dir, spec)
     if not runs:
