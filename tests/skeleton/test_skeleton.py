@@ -313,3 +313,36 @@ def test_jacobian_matches_autograd_and_finite_differences():
         t2[:, d] += eps
         w = so3_log(sk(t2).rotations @ kin.rotations.transpose(-1, -2)) / eps
         assert (w - Jr[..., d]).abs().max() < 1e-5, sk.dof_names[d]
+
+
+@pytest.mark.parametrize("spec", ["toy", "oblique", "no_translation"])
+@pytest.mark.parametrize("batch", [(), (2, 3)])
+def test_jacobian_of_other_skeletons_and_batch_shapes(spec, batch):
+    """The vectorised Jacobian on skeletons with fixed joints, two-axis joints, oblique axes and
+    no root translation, for an unbatched pose and a 2-D batch: autograd of the forward
+    kinematics (positions) and finite differences of the rotations."""
+    from torchmocap.geometry import so3_log
+
+    d = {"toy": TOY, "oblique": OBLIQUE}.get(spec)
+    if d is None:
+        d = {"name": "nt", "joints": [dict(j) for j in TOY["joints"]]}
+        d["joints"][0]["translation"] = False
+    sk = Skeleton.from_dict(d).double()
+    g = torch.Generator().manual_seed(11)
+    th = torch.randn(*batch, sk.num_dofs, dtype=torch.float64, generator=g)
+    kin, Jp, Jr = sk.jacobian(th)
+    assert Jp.shape == Jr.shape == (*batch, sk.num_joints, 3, sk.num_dofs)
+    flat = th.reshape(-1, sk.num_dofs)
+    Ja = torch.autograd.functional.jacobian(lambda t: sk(t).positions, flat)
+    Ja = torch.stack([Ja[b, :, :, b] for b in range(flat.shape[0])])
+    torch.testing.assert_close(Jp.reshape(Ja.shape), Ja, atol=1e-12, rtol=0)
+    eps = 1e-6
+    for k in range(sk.num_dofs):
+        t2 = th.clone()
+        t2[..., k] += eps
+        w = so3_log(sk(t2).rotations @ kin.rotations.transpose(-1, -2)) / eps
+        assert (w - Jr[..., k]).abs().max() < 1e-5, sk.dof_names[k]
+    # float32 gives the float64 result to float32 precision
+    _, Jp32, Jr32 = sk.float().jacobian(th.float())
+    torch.testing.assert_close(Jp32.double(), Jp, atol=2e-5, rtol=0)
+    torch.testing.assert_close(Jr32.double(), Jr, atol=2e-5, rtol=0)

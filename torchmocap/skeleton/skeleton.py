@@ -523,28 +523,81 @@ class Skeleton(nn.Module):
         dtype, device = theta.dtype, theta.device
         D, Jn = self.num_dofs, self.num_joints
         R, p = kin.rotations, kin.positions
-        Jp = torch.zeros(*batch, Jn, 3, D, dtype=dtype, device=device)
-        Jr = torch.zeros(*batch, Jn, 3, D, dtype=dtype, device=device)
+        plan = self._jacobian_plan(device)
+        # the DoFs are the root's translations, then every rotation in joint order: the
+        # rotation columns below are one run, written whole, so only the translations' need zeros
+        Jp = torch.empty(*batch, Jn, 3, D, dtype=dtype, device=device)
+        Jr = torch.empty(*batch, Jn, 3, D, dtype=dtype, device=device)
+        if self._trans_dofs:
+            Jp[..., self._trans_dofs] = 0.0
+            Jr[..., self._trans_dofs] = 0.0
         for d in self._trans_dofs:
             Jp[..., :, d % 3, d] = 1.0
-        sub = self._subtree_masks()
-        for j in range(self.num_joints):
-            axes = self.joint_axes[j]
-            if not axes:
-                continue
-            dofs = [d for d in self._joint_dofs[j] if d not in self._trans_dofs]
-            q = self.parents[j]
-            Rpre = (R[..., q, :, :] if q >= 0 else
-                    torch.eye(3, dtype=dtype, device=device).expand(*batch, 3, 3))
-            strict, incl = sub[j]
-            for a, d in zip(axes, dofs):
-                av = torch.tensor(a, dtype=dtype, device=device)
-                w = Rpre @ av  # (..., 3) world axis
-                Jr[..., incl, :, d] = w[..., None, :]
-                lever = p[..., strict, :] - p[..., j: j + 1, :]
-                Jp[..., strict, :, d] = torch.cross(w[..., None, :].expand_as(lever), lever, -1)
-                Rpre = Rpre @ axis_angle_rotation(av.expand(*batch, 3), theta[..., d])
+        if plan is None:  # no rotation DoF
+            return kin, Jp, Jr
+        Dr = plan["cols"].numel()
+        axes = plan["axes"].to(dtype)  # (Dr, 3)
+        rot = axis_angle_rotation(axes.expand(*batch, Dr, 3), theta[..., plan["cols"]])
+        # the frame each axis turns in: its parent's rotation times the joint's earlier axes
+        eye = torch.eye(3, dtype=dtype, device=device).expand(*batch, 1, 3, 3)
+        pre = torch.cat([eye, R], -3).index_select(-3, plan["parent"])  # (..., Dr, 3, 3)
+        for lvl, prv in plan["levels"]:
+            pre = pre.index_copy(-3, lvl, pre.index_select(-3, prv) @ rot.index_select(-3, prv))
+        w = (pre @ axes[..., None])[..., 0]  # (..., Dr, 3) world axes
+        wt = w.transpose(-1, -2)[..., None, :, :]  # (..., 1, 3, Dr)
+        # w_d x (p_i - p_j(d)) for every joint i and DoF d: one product p @ hat(w) (laid out
+        # (c, a, d)), minus w_d x p_j(d); kept on the strict descendants of j(d)
+        hat_w = hat(w).transpose(-1, -3).reshape(*batch, 3, 3 * Dr)
+        lin = (p @ hat_w).view(*batch, Jn, 3, Dr)
+        own = torch.cross(w, p.index_select(-2, plan["joint"]), dim=-1)  # (..., Dr, 3)
+        lin = lin - own.transpose(-1, -2)[..., None, :, :]
+        span = plan["span"]
+        torch.mul(lin, plan["strict"].to(dtype), out=Jp[..., span])
+        torch.mul(wt, plan["incl"].to(dtype), out=Jr[..., span])
         return kin, Jp, Jr
+
+    def _jacobian_plan(self, device) -> dict | None:
+        """Index tensors of :meth:`jacobian` per device: for every rotation DoF (in joint order)
+        its column, joint, parent (+1; 0 = the world), unit axis, the joints whose rotation
+        (``incl``, ``(J, 1, Dr)``) and position (``strict``) it moves, and the DoFs grouped by
+        their place within their joint (``levels``: ``(positions, previous DoF's positions)``)."""
+        cache = self.__dict__.setdefault("_jac_plans", {})
+        key = str(device)
+        if key not in cache:
+            sub = self._subtree_masks()
+            cols, joint, parent, axes, place = [], [], [], [], []
+            for j in range(self.num_joints):
+                dofs = [d for d in self._joint_dofs[j] if d not in self._trans_dofs]
+                for k, (a, d) in enumerate(zip(self.joint_axes[j], dofs)):
+                    cols.append(d)
+                    joint.append(j)
+                    parent.append(self.parents[j] + 1)
+                    axes.append([float(v) for v in a])
+                    place.append(k)
+            if not cols:
+                cache[key] = None
+                return None
+            Dr = len(cols)
+            incl = torch.zeros(self.num_joints, 1, Dr, dtype=torch.bool)
+            strict = torch.zeros(self.num_joints, 1, Dr, dtype=torch.bool)
+            for r, j in enumerate(joint):
+                strict[sub[j][0], 0, r] = True
+                incl[sub[j][1], 0, r] = True
+            if cols != list(range(len(self._trans_dofs), self.num_dofs)):
+                raise RuntimeError("jacobian: expected the rotation DoFs after the root's "
+                                   f"translations, in joint order; got columns {cols}")
+            levels = []
+            for k in range(1, max(place) + 1):
+                at = [r for r in range(Dr) if place[r] == k]
+                levels.append((torch.tensor(at, device=device),
+                               torch.tensor([r - 1 for r in at], device=device)))
+            cache[key] = {"cols": torch.tensor(cols, device=device),
+                          "joint": torch.tensor(joint, device=device),
+                          "parent": torch.tensor(parent, device=device),
+                          "axes": torch.tensor(axes, dtype=torch.float64, device=device),
+                          "incl": incl.to(device), "strict": strict.to(device),
+                          "levels": levels, "span": slice(cols[0], cols[0] + Dr)}
+        return cache[key]
 
     def _subtree_masks(self):
         if getattr(self, "_subtrees", None) is None:
