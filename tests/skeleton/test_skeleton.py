@@ -346,3 +346,16 @@ def test_jacobian_of_other_skeletons_and_batch_shapes(spec, batch):
     _, Jp32, Jr32 = sk.float().jacobian(th.float())
     torch.testing.assert_close(Jp32.double(), Jp, atol=2e-5, rtol=0)
     torch.testing.assert_close(Jr32.double(), Jr, atol=2e-5, rtol=0)
+
+
+def test_jacobian_is_differentiable():
+    """Second-order use (a gradient through the Jacobian): gradcheck on the toy skeleton."""
+    sk = Skeleton.from_dict(TOY).double()
+    th = torch.randn(2, sk.num_dofs, dtype=torch.float64,
+                     generator=torch.Generator().manual_seed(2)).requires_grad_(True)
+
+    def f(t):
+        _, Jp, Jr = sk.jacobian(t)
+        return Jp, Jr
+
+    assert torch.autograd.gradcheck(f, (th,), eps=1e-6, atol=1e-6)

@@ -551,9 +551,13 @@ class Skeleton(nn.Module):
         lin = (p @ hat_w).view(*batch, Jn, 3, Dr)
         own = torch.cross(w, p.index_select(-2, plan["joint"]), dim=-1)  # (..., Dr, 3)
         lin = lin - own.transpose(-1, -2)[..., None, :, :]
-        span = plan["span"]
-        torch.mul(lin, plan["strict"].to(dtype), out=Jp[..., span])
-        torch.mul(wt, plan["incl"].to(dtype), out=Jr[..., span])
+        span, strict, incl = plan["span"], plan["strict"].to(dtype), plan["incl"].to(dtype)
+        if torch.is_grad_enabled() and (lin.requires_grad or wt.requires_grad):
+            Jp[..., span] = lin * strict  # differentiable (second-order fits)
+            Jr[..., span] = wt * incl
+        else:  # straight into the output, no temporaries
+            torch.mul(lin, strict, out=Jp[..., span])
+            torch.mul(wt, incl, out=Jr[..., span])
         return kin, Jp, Jr
 
     def _jacobian_plan(self, device) -> dict | None:
