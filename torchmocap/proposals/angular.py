@@ -67,18 +67,31 @@ class AngularPriorProposal(Proposal):
         joints: the tracked joints (``"all"``, ``"upper_body"`` or names); the rest stay put.
         prior_scale: the prior's std relative to this proposal's (``log_prior`` is evaluated
             with it; 1 = the proposal is the prior).
+        speed_gain: widens each DoF's std to ``sqrt(σ² + (g · |Δθ|)²)``, ``Δθ`` the DoF's
+            change between the tracker's last two estimates (``context.extras["history"]``;
+            angles along the shorter arc) — the angular counterpart of
+            :class:`~torchmocap.proposals.SpatialPriorProposal`'s ``speed_gain``; the prior of
+            ``log_prior`` widens with it. 0 (default): the fixed spread of eq. 3.
     """
 
     def __init__(self, skeleton, rotation_std_deg: float = 5.0, translation_std: float = 0.02,
-                 joints: str | Sequence[str] | None = "all", prior_scale: float = 1.0) -> None:
+                 joints: str | Sequence[str] | None = "all", prior_scale: float = 1.0,
+                 speed_gain: float = 0.0) -> None:
         super().__init__()
         for name, v in (("rotation_std_deg", rotation_std_deg),
                         ("translation_std", translation_std), ("prior_scale", prior_scale)):
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
                     or v <= 0:
                 raise ValueError(f"{name}: expected a finite number > 0, got {v!r}")
+        if isinstance(speed_gain, bool) or not isinstance(speed_gain, (int, float)) \
+                or not math.isfinite(speed_gain) or speed_gain < 0:
+            raise ValueError(f"speed_gain: expected a finite number >= 0, got {speed_gain!r}")
+        self.speed_gain = float(speed_gain)
         self.num_dofs = skeleton.num_dofs
         self.prior_scale = float(prior_scale)
+        rotational = torch.ones(skeleton.num_dofs, dtype=torch.bool)
+        rotational[skeleton.translation_dofs] = False
+        self.register_buffer("rotational", rotational)
         self.register_buffer("free", free_dofs(skeleton, joints))
         std = skeleton_std(skeleton, rotation_std_deg, translation_std)
         self.register_buffer("std", std[self.free].clone())
@@ -99,19 +112,33 @@ class AngularPriorProposal(Proposal):
         return TruncatedNormal(loc, std.clamp_min(1e-12).expand_as(loc), lo.expand_as(loc),
                                hi.expand_as(loc), validate_args=False)
 
+    def _spread(self, context: ProposalContext) -> torch.Tensor:
+        """Per-DoF std ``(d,)`` of the tracked DoFs: ``std``, widened by ``speed_gain`` times
+        each DoF's change between the last two estimates when the tracker passes them."""
+        history = (context.extras or {}).get("history")
+        if self.speed_gain == 0 or history is None or history.shape[0] < 2:
+            return self.std
+        delta = (history[-1] - history[-2]).to(self.std)
+        rot = self.rotational.to(delta.device)
+        delta = torch.where(rot, torch.remainder(delta + math.pi, 2 * math.pi) - math.pi, delta)
+        d = self.coordinates(delta).abs() * self.speed_gain
+        return torch.sqrt(self.std.square() + d.square())
+
     def sample(self, context: ProposalContext, num: int,
                generator: torch.Generator | None = None) -> Proposed:
         base = select_ancestors(context, num, self.num_dofs, generator)
         loc = self.coordinates(base)
-        std = context_std(context, self.std, loc)
+        own = self._spread(context)
+        std = context_std(context, own, loc)
         q = self._dist(loc, std)
         x = q.sample(generator=generator)
         theta = base.clone()
         theta[:, self.free.to(theta.device)] = x
         log_q = q.log_prob(x).sum(-1)
-        prior = self._dist(loc, self.std.to(loc) * self.prior_scale)
+        prior = self._dist(loc, own.to(loc) * self.prior_scale)
         log_prior = prior.log_prob(x).sum(-1)
         return Proposed(particles=theta, log_q=log_q, log_prior=log_prior)
 
     def extra_repr(self) -> str:
-        return f"free_dofs={self.free.numel()}, prior_scale={self.prior_scale}"
+        return (f"free_dofs={self.free.numel()}, prior_scale={self.prior_scale}, "
+                f"speed_gain={self.speed_gain}")
