@@ -177,7 +177,7 @@ def test_refine_from_the_prediction_too_leaves_the_annealers_wrong_basin():
         parts = torch.tensor([1.0, 0.0, 0.0], dtype=F64) + 0.05 * torch.randn(
             50, 3, generator=g, dtype=F64)
         ctx = ProposalContext(pred, extras={"particles": parts, "last_estimate": pred})
-        x0, starts = {}, {}
+        x0, starts, wins = {}, {}, {}
         for start in ("estimate", "estimate_and_prediction", ("last_estimate", "estimate"),
                       ("estimate", "prediction", "last_estimate"), "prediction"):
             inf = AnnealedInference(layers=3, propagate="particles", refine_from=start,
@@ -186,6 +186,7 @@ def test_refine_from_the_prediction_too_leaves_the_annealers_wrong_basin():
                       torch.Generator().manual_seed(seed))
             x0[start] = float(res.estimate[0])
             starts[start] = res.info["refine"]["start"]
+            wins[start] = {k: v for k, v in res.info["refine"].items() if k.startswith("from_")}
             assert float(res.particles[:, 0].mean()) > 0.5  # the annealer's set: kept as is
         assert x0["estimate"] == pytest.approx(0.96, abs=0.05), x0
         for start in ("estimate_and_prediction", ("last_estimate", "estimate"),
@@ -195,6 +196,9 @@ def test_refine_from_the_prediction_too_leaves_the_annealers_wrong_basin():
         assert starts["estimate_and_prediction"] == 1
         assert starts[("last_estimate", "estimate")] == 0
         assert starts[("estimate", "prediction", "last_estimate")] in (1, 2)
+        assert (wins["estimate_and_prediction"]["from_estimate"],
+                wins["estimate_and_prediction"]["from_prediction"]) == (0.0, 1.0)
+        assert wins["estimate"] == {"from_estimate": 1.0}
     for bad in ("predicted", ("estimate", "estimate"), ()):
         with pytest.raises(ValueError, match="refine_from"):
             AnnealedInference(refine_from=bad)
@@ -204,13 +208,17 @@ def test_refine_starts_are_stacked_in_the_order_asked_for():
     est, pred, last = (torch.full((3,), v, dtype=F64) for v in (1.0, 2.0, 3.0))
     inf = AnnealedInference(refine_from=["last_estimate", "estimate", "prediction"])
     ctx = ProposalContext(pred, extras={"last_estimate": last})
-    assert inf._refine_starts(est, ctx)[:, 0].tolist() == [3.0, 1.0, 2.0]
+    rows, names = inf._refine_starts(est, ctx)
+    assert rows[:, 0].tolist() == [3.0, 1.0, 2.0]
+    assert names == ["last_estimate", "estimate", "prediction"]
     # the first frame of a track without a last estimate, or a batched prediction: left out
-    assert inf._refine_starts(est, ProposalContext(pred))[:, 0].tolist() == [1.0, 2.0]
+    rows, names = inf._refine_starts(est, ProposalContext(pred))
+    assert rows[:, 0].tolist() == [1.0, 2.0] and names == ["estimate", "prediction"]
     batched = ProposalContext(pred.expand(4, 3), extras={"last_estimate": last})
-    assert inf._refine_starts(est, batched)[:, 0].tolist() == [3.0, 1.0]
-    assert AnnealedInference(refine_from="prediction")._refine_starts(
-        est, ProposalContext(pred.expand(4, 3))).tolist() == est.tolist()
+    assert inf._refine_starts(est, batched)[0][:, 0].tolist() == [3.0, 1.0]
+    rows, names = AnnealedInference(refine_from="prediction")._refine_starts(
+        est, ProposalContext(pred.expand(4, 3)))
+    assert rows.tolist() == est.tolist() and names == ["estimate"]
 
 
 def test_spread_diffusion_closed_form():

@@ -387,11 +387,14 @@ class AnnealedInference(Inference):
                 best = (cand, math.nan, res)
         est, _, res = best
         if self.refine is not None:
-            starts = self._refine_starts(est.detach(), context)
+            starts, names = self._refine_starts(est.detach(), context)
             ctx = dataclasses.replace(context, previous=starts, log_weights=None)
             ref = self.refine(energy, proposal, estimator, ctx, 1, generator)
             info["refine"] = {k: v for k, v in ref.info.items()
                               if isinstance(v, (int, float)) and not isinstance(v, bool)}
+            won = int(ref.info.get("start", 0))
+            for i, n in enumerate(names):  # averaged over frames: how often each start won
+                info["refine"][f"from_{n}"] = float(i == won)
             est = ref.estimate.detach().to(est.dtype)
         info["proposal"] = _summarise(all_stats)
         info["seconds_inference"] = time.perf_counter() - t0
@@ -401,18 +404,20 @@ class AnnealedInference(Inference):
         return InferenceResult(estimate=est, particles=res.particles,
                                log_weights=res.log_weights, info=info)
 
-    def _refine_starts(self, est: torch.Tensor, context: ProposalContext) -> torch.Tensor:
-        """``(S, D)`` starts of the local stage, in the order of ``refine_from`` (a start the
-        context lacks — no last estimate on the first frame, a batched prediction — is left out;
-        the annealed estimate stands in when none is left)."""
+    def _refine_starts(self, est: torch.Tensor, context: ProposalContext
+                       ) -> tuple[torch.Tensor, list[str]]:
+        """``(S, D)`` starts of the local stage (``(D,)`` for one) and their names, in the order
+        of ``refine_from`` (a start the context lacks — no last estimate on the first frame, a
+        batched prediction — is left out; the annealed estimate stands in when none is left)."""
         found = {"estimate": est}
         if context.previous.dim() == 1:
             found["prediction"] = context.previous
         last = context.extras.get("last_estimate")
         if torch.is_tensor(last) and last.shape == est.shape:
             found["last_estimate"] = last
-        rows = [found[n].detach().to(est) for n in self.refine_from if n in found]
-        return torch.stack(rows) if len(rows) > 1 else (rows[0] if rows else est)
+        names = [n for n in self.refine_from if n in found] or ["estimate"]
+        rows = [found[n].detach().to(est) for n in names]
+        return (torch.stack(rows) if len(rows) > 1 else rows[0]), names
 
     def extra_repr(self) -> str:
         return (f"layers={self.layers}, schedule={self.schedule!r}, "
