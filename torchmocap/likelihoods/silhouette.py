@@ -135,7 +135,12 @@ def prepare_silhouettes(masks: torch.Tensor, num_samples: int = 150,
         pix[c, :k, 0] = xs[idx].to(dtype)  # pixel centres sit at integer coordinates
         pix[c, :k, 1] = ys[idx].to(dtype)
         pv[c, :k] = True
-    blurs = [float(v) for v in torch.as_tensor(blur, dtype=torch.float64).flatten().tolist()]
+    if isinstance(blur, torch.Tensor):  # (a host copy: pass numbers in a hot path)
+        blurs = [float(v) for v in blur.detach().flatten().tolist()]
+    elif isinstance(blur, (int, float)):
+        blurs = [float(blur)]
+    else:
+        blurs = [float(v) for v in blur]
     if len(blurs) not in (1, C):
         raise ValueError(f"blur: expected a number or one value per view ({C}), got "
                          f"{len(blurs)} values")
@@ -435,6 +440,8 @@ class SilhouetteLikelihood(Likelihood):
             raise ValueError(f"reference_width: expected a finite image width in pixels > 0 or "
                              f"None, got {reference_width!r}")
         self.reference_width = None if reference_width is None else float(reference_width)
+        # the views' widths as numbers, for the blur kernels (no host copy per frame)
+        self._widths = [float(w) for w in rig.image_size[:, 0].tolist()]
         if distance is not None:
             if isinstance(distance, bool) or not isinstance(distance, (int, float)) \
                     or not math.isfinite(distance) or distance <= 0:
@@ -472,7 +479,10 @@ class SilhouetteLikelihood(Likelihood):
         view_valid = None
         if getattr(frame, "view_dropped", None) is not None:
             view_valid = ~frame.view_dropped.bool()
-        blur = 0.0 if self.distance else self.blur * self.view_scale()
+        if self.distance or self.reference_width is None:
+            blur = 0.0 if self.distance else self.blur
+        else:
+            blur = [self.blur * w / self.reference_width for w in self._widths]
         return prepare_silhouettes(frame.silhouettes, self.fg_samples, blur=blur,
                                    view_valid=view_valid, dtype=self.body.radii.dtype,
                                    distance=self.distance is not None)
