@@ -13,23 +13,11 @@ from __future__ import annotations
 
 import argparse
 import platform
-import statistics
-import time
 
 import torch
+from timing import median_ms
 
 from torchmocap.skeleton import human31, pk_theta, to_pytorch_kinematics_chain
-
-
-def _median_ms(fn, repeats: int) -> float:
-    for _ in range(2):
-        fn()
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return 1e3 * statistics.median(ts)
 
 
 def main() -> None:
@@ -67,8 +55,8 @@ def main() -> None:
             fr = chain.forward_kinematics(th)
             sum(fr[j].get_matrix()[:, :3, 3].sum() for j in names).backward()
 
-        f_o, f_p = _median_ms(ours_fwd, args.repeats), _median_ms(pk_fwd, args.repeats)
-        b_o, b_p = _median_ms(ours_bwd, args.repeats), _median_ms(pk_bwd, args.repeats)
+        f_o, f_p = median_ms(ours_fwd, args.repeats), median_ms(pk_fwd, args.repeats)
+        b_o, b_p = median_ms(ours_bwd, args.repeats), median_ms(pk_bwd, args.repeats)
         rows.append((n, f_o, f_p, f_p / f_o, b_o, b_p, b_p / b_o))
     print(f"# torch {torch.__version__}, {torch.get_num_threads()} threads, "
           f"{platform.processor() or platform.machine()}, float32")

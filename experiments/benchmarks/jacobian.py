@@ -17,24 +17,12 @@ from __future__ import annotations
 
 import argparse
 import platform
-import statistics
-import time
 from importlib.metadata import version
 
 import torch
+from timing import median_ms
 
 from torchmocap.skeleton import human31, pk_theta, to_pytorch_kinematics_chain
-
-
-def _median_ms(fn, repeats: int) -> float:
-    for _ in range(2):
-        fn()
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return 1e3 * statistics.median(ts)
 
 
 def main() -> None:
@@ -77,10 +65,10 @@ def main() -> None:
         theta = lo + (hi - lo) * torch.rand(n, sk.num_dofs, generator=gen)
         tpk = pk_theta(chain, sk, theta)
         subsets = [(sc, tpk[:, cols].contiguous()) for _, sc, cols in serial]
-        t_ours = _median_ms(lambda theta=theta: sk.jacobian(theta), args.repeats)
-        t_pk = _median_ms(lambda subsets=subsets: [sc.jacobian(t) for sc, t in subsets],
+        t_ours = median_ms(lambda theta=theta: sk.jacobian(theta), args.repeats)
+        t_pk = median_ms(lambda subsets=subsets: [sc.jacobian(t) for sc, t in subsets],
                           max(3, args.repeats // 3))
-        t_ag = _median_ms(lambda theta=theta: jac_autograd(theta), max(3, args.repeats // 3))
+        t_ag = median_ms(lambda theta=theta: jac_autograd(theta), max(3, args.repeats // 3))
         rows.append((n, t_ours, t_pk, t_ag))
     print(f"# torch {torch.__version__}, {torch.get_num_threads()} threads, "
           f"{platform.processor() or platform.machine()}, float32; pytorch-kinematics "

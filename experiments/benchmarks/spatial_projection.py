@@ -31,11 +31,10 @@ from __future__ import annotations
 
 import argparse
 import platform
-import statistics
-import time
 import warnings
 
 import torch
+from timing import median_ms
 
 from torchmocap.ik import project_to_skeleton
 from torchmocap.ik.lm import fit_pose_lm
@@ -43,16 +42,6 @@ from torchmocap.skeleton import human31, to_pytorch_kinematics_chain
 
 MM = 1e3
 
-
-def _median_ms(fn, repeats: int) -> float:
-    for _ in range(2):
-        fn()
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return 1e3 * statistics.median(ts)
 
 
 def walk_poses() -> torch.Tensor:
@@ -109,7 +98,7 @@ def pk_row(sk, theta, x, repeats):
             sol = ik.solve(target)
             q = sol.solutions[:, 0]
             nan = int(torch.isnan(q).any(1).sum())
-            t = _median_ms(lambda ik=ik: ik.solve(target), max(3, repeats // 3))
+            t = median_ms(lambda ik=ik: ik.solve(target), max(3, repeats // 3))
             err = None
             outside = None
             if nan < q.shape[0]:
@@ -165,10 +154,10 @@ def main() -> None:
                                        args.lm_max_iterations)):
             k, p99 = first_within(run, opt, k_max)
             kk = k if k is not None else k_max
-            ms = _median_ms(lambda run=run, kk=kk: run(kk), args.repeats)
+            ms = median_ms(lambda run=run, kk=kk: run(kk), args.repeats)
             worse = int(((ours_opt.cost if name == "ours" else lm_opt.cost) > best + 1e-6).sum())
             rows.append((poses, name, k, kk, p99, ms, worse))
-        t_def = _median_ms(lambda x=x, th=th: project_to_skeleton(sk, x, th), args.repeats)
+        t_def = median_ms(lambda x=x, th=th: project_to_skeleton(sk, x, th), args.repeats)
         r_def = project_to_skeleton(sk, x, th)
         p_def = float(residual_change(r_def.residual, ours_opt.residual).quantile(0.99))
         rows.append((poses, "ours, default stop", None, r_def.iterations, p_def, t_def,

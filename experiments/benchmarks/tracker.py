@@ -32,19 +32,14 @@ import time
 from pathlib import Path
 
 import torch
+from timing import median_ms
 
 SHARED = Path(__file__).resolve().parents[3] / "shared" / "data"
 
 
-
 def _median(fn, repeats):
-    fn()
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts)
+    """Median seconds of ``fn()`` after one untimed call."""
+    return median_ms(fn, repeats, warmup=1) / 1e3
 
 
 def measure(frames: int, bodytrack: bool = True) -> list[str]:

@@ -42,7 +42,12 @@ from torchmocap.likelihoods.learned import (
     mlp,
     pool_views,
 )
-from torchmocap.likelihoods.silhouette import _coverage_margin, _stadiums, prepare_silhouettes
+from torchmocap.likelihoods.silhouette import (
+    _blur,
+    _coverage_margin,
+    _stadiums,
+    prepare_silhouettes,
+)
 
 __all__ = ["FeatureNet", "FeatureObservation", "LearnedFeatureLikelihood", "POINT_FEATURES",
            "PIXEL_FEATURES"]
@@ -103,18 +108,6 @@ class FeatureObservation:
     fg_valid: torch.Tensor
     view_valid: torch.Tensor
     has_colour: bool
-
-
-def _blur(m: torch.Tensor, sigma: float) -> torch.Tensor:
-    """Separable Gaussian blur of ``m (C, 1, H, W)``."""
-    if sigma <= 0:
-        return m
-    r = max(1, int(round(3 * sigma)))
-    x = torch.arange(-r, r + 1, dtype=m.dtype, device=m.device)
-    g = torch.exp(-0.5 * (x / sigma) ** 2)
-    g = g / g.sum()
-    b = F.conv2d(m, g.view(1, 1, 1, -1), padding=(0, r))
-    return F.conv2d(b, g.view(1, 1, -1, 1), padding=(r, 0))
 
 
 class LearnedFeatureLikelihood(LearnedLikelihood):
