@@ -244,3 +244,22 @@ def test_exception_skeleton(tmp_path):
     with pytest.raises(DataConfigError, match=r"^data\.skeleton: expected human31's DoFs.*"
                                               r"l_ankle_inv"):
         synthesized_sequence(_clip(), "clean", FAST, seed=0, skeleton=str(path))
+
+
+def test_feature_clip_name_follows_the_file(tmp_path):
+    """The bundled preset's label names only the bundled file: another path without a name of
+    its own is reported under its file's stem (runs of different files never share the bundled
+    walk's name); an explicit name wins."""
+    from torchmocap.data.loaders import BUNDLED_CLIP_NAME, bundled_clip_path, clip_name
+
+    other = tmp_path / "my_take.bvh"
+    other.write_bytes(bundled_clip_path().read_bytes())
+    assert clip_name({"name": BUNDLED_CLIP_NAME, "path": None}) == BUNDLED_CLIP_NAME
+    assert clip_name({"name": BUNDLED_CLIP_NAME, "path": str(bundled_clip_path())}) \
+        == BUNDLED_CLIP_NAME
+    assert clip_name({"name": BUNDLED_CLIP_NAME, "path": str(other)}) == "my_take"
+    assert clip_name({"name": None, "path": str(other)}) == "my_take"
+    assert clip_name({"name": "dance", "path": str(other)}) == "dance"
+    seq = synthesized_sequence(_clip(name=BUNDLED_CLIP_NAME, path=str(other)), "clean", FAST,
+                               seed=0)
+    assert seq.meta["clip"]["name"] == "my_take"

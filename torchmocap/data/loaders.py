@@ -13,7 +13,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-__all__ = ["CLIP_KEYS", "DataConfigError", "body_model", "bundled_clip_path", "check_seed",
+__all__ = ["BUNDLED_CLIP_NAME", "CLIP_KEYS", "DataConfigError", "body_model", "bundled_clip_path",
+           "check_seed", "clip_name",
            "synthesized_sequence"]
 
 #: the settings of ``data.clip`` (every one is in ``conf/data/clip/bundled.yaml``, so each can
@@ -24,6 +25,8 @@ CLIP_KEYS = frozenset({"name", "path", "asf", "skeleton_map", "unit", "up", "fps
 
 #: frames kept by ``data.clip.frames: auto`` (3 s at 25 fps; fewer when the clip is shorter)
 AUTO_FRAMES = 75
+#: label of the bundled clip (``data/clip/bundled.yaml``)
+BUNDLED_CLIP_NAME = "bundled_walk"
 
 
 class DataConfigError(ValueError):
@@ -101,6 +104,23 @@ def _int(value, key: str, minimum: int, allow_none: bool = False) -> int | None:
 def _short_map(joint_map: Mapping[str, str], n: int = 4) -> str:
     items = [f"{h}={v}" for h, v in joint_map.items()]
     return ", ".join(items[:n]) + (f", ... {len(items) - n} more" if len(items) > n else "")
+
+
+def clip_name(clip: Mapping[str, Any]) -> str:
+    """The label of ``clip`` in reports: its ``name``, or the file's stem when it has none.
+
+    The bundled clip preset's label (``bundled_walk``) names only the bundled file: with
+    ``data.clip.path=<file>`` and no ``data.clip.name`` the file's stem is used, so that runs of
+    different files are not reported under the bundled walk's name.
+    """
+    name = clip.get("name")
+    path = _path(clip.get("path"), "data.clip.path")
+    if path is None:
+        return str(name) if name else BUNDLED_CLIP_NAME
+    if not name or (name == BUNDLED_CLIP_NAME
+                    and Path(path).resolve() != bundled_clip_path().resolve()):
+        return Path(path).stem
+    return str(name)
 
 
 def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
@@ -215,7 +235,7 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
     subject = fit_subject(motion, skeleton_map=smap, base=base)
     seq = synthesize(subject, sc, seed=seed)
     seq.meta["skeleton"] = _path(skeleton, "data.skeleton") or "human31"
-    seq.meta["clip"] = {"name": clip.get("name"), "path": path, "asf": asf,
+    seq.meta["clip"] = {"name": clip_name(clip), "path": path, "asf": asf,
                         "skeleton_map": smap, "unit": motion.unit, "skip_frames": skip,
                         "start": float(start),
                         "in_place": in_place,
