@@ -220,6 +220,39 @@ class TestKinematicJumpProposal:
         out = excl.sample(ProposalContext(previous=th), 3, g)
         assert bool(out.stats["jumped"].all()) and out.stats["unique"] == 3
 
+    @pytest.mark.parametrize("include_original", [True, False])
+    def test_feature_leaves_are_the_product_of_the_trees_in_order(self, mono, include_original):
+        """The vectorised leaf assembly of the proposal equals :func:`kinematic_jumps` (the
+        enumeration by ``itertools.product``) pose for pose and in order, for two modes that
+        flip different chain pairs, with and without the unflipped combination."""
+        sk, rig, th = mono
+        D = sk.num_dofs
+        th2 = th.clone()
+        th2[sk.dof_index("r_elbow_flex")] = 1.2
+        th2[sk.dof_index("l_knee_flex")] = 0.4
+        modes = torch.stack([th, th2])
+        c = rig.camera_centers()[0]
+        prop = KinematicJumpProposal(sk, rig, chains=LIMBS, select="vote", num_chains=2,
+                                     include_original=include_original)
+        cov = torch.eye(D, dtype=torch.float64).expand(2, D, D).clone() * 1e-4
+        pairs = (("l_arm", "r_leg"), ("r_arm", "l_leg"))
+        for k, pair in enumerate(pairs):
+            for limb in pair:
+                d = prop.chain_dofs[LIMBS.index(limb)]
+                cov[k][d, d] = 0.3
+        ctx = ProposalContext(previous=modes, extras={"covariances": cov})
+        out = prop.sample(ctx, 10_000, torch.Generator().manual_seed(0))
+        n = out.stats["unique"]
+        got, comp = out.particles[:n], out.stats["component"][:n]
+        for k, pair in enumerate(pairs):
+            ref = kinematic_jumps(sk, modes[k], list(pair), c,
+                                  include_original=include_original)
+            mine = got[comp == k]
+            assert ref.kept > 2 and mine.shape == ref.theta.shape
+            assert torch.equal(mine, ref.theta)
+            assert torch.equal(out.stats["jumped"][:n][comp == k], ref.flips.any(1))
+        assert out.stats["kept"] == n
+
     def test_feature_jumps_of_covariance_scaled_samples(self, mono):
         """Fig. 5: CSS samples of two modes, each jumped over its voted chain."""
         sk, rig, th = mono

@@ -541,19 +541,26 @@ def solve_limb(
     lo = skeleton.lower.to(dt).to(dev).index_select(0, didx)
     hi = skeleton.upper.to(dt).to(dev).index_select(0, didx)
     ref = rf_full.index_select(1, didx)
-    joints = plan.target_joints[:M]
 
-    kin = skeleton(th, check_finite=False)
-    R_par = kin.rotations[:, plan.parent]
-    p_root = kin.positions[:, plan.root]
+    # the frame above the limb depends on theta alone: posed once per distinct theta (a
+    # theta broadcast over many targets, as the leaves of an interpretation tree, is not
+    # posed again for each)
+    lead = theta.shape[:-1]
+    kin = skeleton(theta.reshape(-1, D), check_finite=False)
+    R_par = kin.rotations[:, plan.parent].reshape(*lead, 3, 3).expand(*batch, 3, 3)
+    R_par = R_par.reshape(Bn, 3, 3)
+    p_root = kin.positions[:, plan.root].reshape(*lead, 3).expand(*batch, 3).reshape(Bn, 3)
 
     def assemble(x: torch.Tensor) -> torch.Tensor:
         out = th.clone()
         out[:, didx] = x
         return out
 
-    def evaluate(t: torch.Tensor, goal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        e = (skeleton(t, check_finite=False).positions[:, joints] - goal).norm(dim=-1)
+    def evaluate(t: torch.Tensor, goal: torch.Tensor, R: torch.Tensor, p: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+        # poses t differ from th only in the limb's DoFs: the limb's own kinematics below
+        # its fixed parent frame (R, p) places its joints
+        e = (_limb_forward(plan, R, p, t.index_select(1, didx), M, False)[0] - goal).norm(dim=-1)
         return e.amax(-1), (e * e).sum(-1)
 
     cands, reachable, straight = _closed_form_candidates(plan, R_par, p_root, tg, ref, tol)
@@ -574,7 +581,7 @@ def solve_limb(
         t_out = assemble(x)
         iterative = zeros
         if method == "auto":
-            res, sse = evaluate(t_out, tg)
+            res, sse = evaluate(t_out, tg, R_par, p_root)
             inside = inside_limits(t_out)
             bad = (~inside) | (res > tol)
             if bool(bad.any()):
@@ -590,7 +597,7 @@ def solve_limb(
                               lo, hi, rep(ref), prior_weight, iterations)
                 tb = th[ib].repeat_interleave(S, 0)
                 tb[:, didx] = xs
-                _, c_s = evaluate(tb, tgb)
+                _, c_s = evaluate(tb, tgb, rep(R_par), rep(p_root))
                 pick = c_s.reshape(b, S).argmin(-1)
                 ar = torch.arange(b, device=dev)
                 sol = tb.reshape(b, S, D)[ar, pick]
@@ -600,7 +607,7 @@ def solve_limb(
                 t_out[ib] = torch.where(use[:, None], sol, t_out[ib])
                 iterative = iterative.clone()
                 iterative[ib] = use
-    residual, _ = evaluate(t_out, tg)
+    residual, _ = evaluate(t_out, tg, R_par, p_root)
     within = inside_limits(t_out)
     return LimbIKResult(
         theta=t_out.reshape(*batch, D),

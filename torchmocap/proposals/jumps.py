@@ -215,9 +215,7 @@ def limb_flips(skeleton, theta: torch.Tensor, chain, camera_center: torch.Tensor
         positions, valid = tree.positions, tree.valid
     L = flips.shape[0]
     targets = positions[:, :, 1:]  # (B, L, K, 3) hinge, end[, tip]
-    th = theta[:, None].expand(B, L, D).reshape(B * L, D)
-    res = solve_limb(skeleton, th, spec, targets.reshape(B * L, K, 3), method=ik_method,
-                     tol=None)
+    res = solve_limb(skeleton, theta[:, None], spec, targets, method=ik_method, tol=None)
     out = res.theta.reshape(B, L, D)
     within = res.within_limits.reshape(B, L)
     resid = res.residual.reshape(B, L)
@@ -406,39 +404,51 @@ class KinematicJumpProposal(Proposal):
                               self.select, generator, M) for k in range(K)]
 
     def _jump(self, starts: torch.Tensor, comp: torch.Tensor, chosen: list[list[int]],
-              stats: dict) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        """Leaves of every start (grouped by chain set), in start order, with a flag per leaf:
-        some link flipped."""
+              stats: dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Kept leaves of every start, in start order (each start's leaves in the order of the
+        product of its chains' trees, the first chain slowest): poses ``(N, D)``, a flag per
+        leaf (some link flipped) and the index of its start ``(N,)``."""
         c = self.camera_center(starts)
-        out: list = [None] * starts.shape[0]
+        D = starts.shape[-1]
+        dev = starts.device
         groups: dict[tuple[int, ...], list[int]] = {}
         for i, k in enumerate(comp.tolist()):
             groups.setdefault(tuple(chosen[k]), []).append(i)
+        poses_all, jumped_all, start_all = [], [], []
         for sel, members in groups.items():
-            x = starts[members]
+            idx = torch.tensor(members, dtype=torch.long, device=dev)
+            x = starts.index_select(0, idx)
+            nb = len(members)
             per = [limb_flips(self.skeleton, x, self.chains[m], c, self.ik_method, self.ik_tol,
                               self.min_flip)
                    for m in sel]
             for m in sel:
                 stats["votes"][self.chains[m].name] = stats["votes"].get(
-                    self.chains[m].name, 0) + len(members)
-            for b, i in enumerate(members):
-                stats["leaves"] += math.prod(p.flips.shape[0] for p in per)
-                stats["valid"] += math.prod(int(p.valid[b].sum()) for p in per)
-                kept = [p.kept[b].nonzero()[:, 0].tolist() for p in per]
-                poses, jumped = [], []
-                for combo in itertools.product(*kept):
-                    if not self.include_original and not any(combo):
-                        continue
-                    xx = x[b].clone()
-                    for p, leaf in zip(per, combo):
-                        xx[p.dofs] = p.theta[b, leaf, p.dofs]
-                    poses.append(xx)
-                    jumped.append(any(combo))
-                stats["kept"] += len(poses)
-                out[i] = (torch.stack(poses) if poses else x[b][:0],
-                          torch.tensor(jumped, dtype=torch.bool, device=x.device))
-        return out  # type: ignore[return-value]
+                    self.chains[m].name, 0) + nb
+            sizes = [p.flips.shape[0] for p in per]
+            stats["leaves"] += nb * math.prod(sizes)
+            stats["valid"] += int(torch.stack([p.valid.sum(1) for p in per]).prod(0).sum())
+            # every combination of the chains' leaves, the first chain's index slowest
+            grid = torch.meshgrid(*[torch.arange(n, device=dev) for n in sizes], indexing="ij")
+            combos = torch.stack([g.reshape(-1) for g in grid], 1)  # (C, chains)
+            flipped = combos.ne(0).any(1)  # (C,)
+            poses = x[:, None].expand(nb, combos.shape[0], D).clone()
+            kept = torch.ones(nb, combos.shape[0], dtype=torch.bool, device=dev)
+            for s, p in enumerate(per):
+                leaf = combos[:, s]
+                dofs = torch.tensor(p.dofs, dtype=torch.long, device=dev)
+                poses[:, :, dofs] = p.theta.index_select(1, leaf).index_select(2, dofs)
+                kept &= p.kept.index_select(1, leaf)
+            if not self.include_original:
+                kept &= flipped[None]
+            b, k = kept.nonzero(as_tuple=True)  # row-major: start by start, combos in order
+            poses_all.append(poses[b, k])
+            jumped_all.append(flipped[k])
+            start_all.append(idx[b])
+            stats["kept"] += int(b.numel())
+        start = torch.cat(start_all)
+        order = torch.sort(start, stable=True).indices
+        return (torch.cat(poses_all)[order], torch.cat(jumped_all)[order], start[order])
 
     def sample(self, context: ProposalContext, num: int,
                generator: torch.Generator | None = None) -> Proposed:
@@ -464,11 +474,10 @@ class KinematicJumpProposal(Proposal):
         if self.base is None:
             starts, comp = modes, torch.arange(K, device=modes.device)
             stats["starts"] = K
-            for k, (lv, jp) in enumerate(self._jump(starts, comp, chosen, stats)):
-                leaves.append(lv)
-                jumps.append(jp)
-                comps.append(torch.full((lv.shape[0],), k, dtype=torch.long,
-                                        device=modes.device))
+            lv, jp, st = self._jump(starts, comp, chosen, stats)
+            leaves.append(lv)
+            jumps.append(jp)
+            comps.append(st)
         else:
             n_chains = len(self.chains) if self.select == "all" else min(
                 self.num_chains, len(self.chains))
@@ -481,13 +490,11 @@ class KinematicJumpProposal(Proposal):
                 comp = (torch.zeros(n_b, dtype=torch.long, device=modes.device) if comp is None
                         else torch.as_tensor(comp, device=modes.device).long())
                 stats["starts"] += n_b
-                got = self._jump(drawn.particles.to(modes.dtype), comp, chosen, stats)
-                for (lv, jp), k in zip(got, comp.tolist()):
-                    leaves.append(lv)
-                    jumps.append(jp)
-                    comps.append(torch.full((lv.shape[0],), k, dtype=torch.long,
-                                            device=modes.device))
-                    have += lv.shape[0]
+                lv, jp, st = self._jump(drawn.particles.to(modes.dtype), comp, chosen, stats)
+                leaves.append(lv)
+                jumps.append(jp)
+                comps.append(comp.to(st.device)[st])
+                have += lv.shape[0]
                 if have >= num:
                     break
                 per_start = max(1.0, have / max(stats["starts"], 1))
