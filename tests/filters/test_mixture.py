@@ -241,6 +241,31 @@ class TestMixtureInference:
         dist2 = float(((Hw[jb] - A) ** 2).sum() - ((Hw[ja] - A) ** 2).sum())
         assert ratio_w == pytest.approx(ratio_p * math.exp(-dist2 / (2 * s * s)), rel=0.05)
 
+    @pytest.mark.parametrize("continuations", [0, 1])
+    def test_feature_continuations_keep_the_tracked_mode(self, continuations):
+        """One component tracked at the shallower mode B; the proposal's samples near the
+        deeper mode A are kinematic jumps. The plain K-best pruning keeps A (lower energy); with
+        ``continuations=1`` the best unjumped descendant of the prior mode — B — is kept first."""
+        from torchmocap.proposals import Proposal, Proposed
+
+        class Jumps(Proposal):
+            def sample(self, context, num, generator=None):
+                near_b = B + 0.05 * torch.randn(num // 2, 2, generator=generator)
+                near_a = A + 0.05 * torch.randn(num - num // 2, 2, generator=generator)
+                jumped = torch.cat([torch.zeros(num // 2, dtype=torch.bool),
+                                    torch.ones(num - num // 2, dtype=torch.bool)])
+                return Proposed(particles=torch.cat([near_b, near_a]),
+                                stats={"jumped": jumped})
+
+        inf = MixtureInference(components=1, optimiser="lbfgs", hessian="autograd",
+                               iterations=30, continuations=continuations)
+        res = inf(double_well, Jumps(), BestParticleEstimator(),
+                  ProposalContext(previous=B.clone()), 20, torch.Generator().manual_seed(0))
+        kept = torch.tensor(res.info["hypotheses"])[0]
+        assert res.info["minima"] >= 2  # both modes were found either way
+        want = B if continuations else A
+        assert float((kept - want).norm()) < 0.02, (continuations, kept)
+
     def test_feature_any_proposal_and_generic_energy(self):
         inf = MixtureInference(components=2, iterations=30, lower=torch.tensor([-3.0, -3.0]),
                                upper=torch.tensor([3.0, 0.8]))
@@ -260,6 +285,8 @@ class TestMixtureInference:
             MixtureInference(merge_space="joints")
         with pytest.raises(ValueError, match="prior_std_deg"):
             MixtureInference(prior_std_deg=-1.0)
+        with pytest.raises(ValueError, match="continuations"):
+            MixtureInference(continuations=-1)
 
 
 # ---------------------------------------------------------------------- the presets

@@ -449,6 +449,12 @@ class MixtureInference(Inference):
             alone (False).
         follow_prediction: shift the prior modes by ``prediction - previous estimate``.
         reoptimise_modes: also optimise the prior modes themselves.
+        continuations: keep, before the ``K`` lowest-energy minima are chosen, the best
+            *continuation* of each of the this many highest-weight prior modes: its
+            lowest-energy descendant that was not kinematically jumped (with
+            ``reoptimise_modes``, at worst the re-optimised prior mode itself). Jumps then fill
+            only the remaining slots, so a tracked interpretation is not pushed out by mirror
+            images of equal image cost (0: the paper's plain ``K`` best).
         discard: Fig. 4 step 5's discarding of used prior components.
         lower, upper: box bounds without a skeleton.
     """
@@ -462,10 +468,10 @@ class MixtureInference(Inference):
                  prior_std_deg: float | None = None, prior_translation_std: float = 0.1,
                  prior_in_weights: bool = False, follow_prediction: bool = True,
                  reoptimise_modes: bool = True, discard: bool = True, lower=None,
-                 upper=None) -> None:
+                 upper=None, continuations: int = 0) -> None:
         super().__init__()
         for name, v, lo in (("components", components, 1), ("layers", layers, 1),
-                            ("iterations", iterations, 0)):
+                            ("iterations", iterations, 0), ("continuations", continuations, 0)):
             if isinstance(v, bool) or not isinstance(v, int) or v < lo:
                 raise ValueError(f"{name}: expected an int >= {lo}, got {v!r}")
         if optimiser not in OPTIMISERS:
@@ -500,6 +506,7 @@ class MixtureInference(Inference):
         self.prior_in_weights = bool(prior_in_weights)
         self.follow_prediction = bool(follow_prediction)
         self.reoptimise_modes = bool(reoptimise_modes)
+        self.continuations = continuations
         self.discard = bool(discard)
         if skeleton is not None:
             lower = skeleton.lower if lower is None else lower
@@ -614,6 +621,25 @@ class MixtureInference(Inference):
         lw = torch.where(torch.isfinite(lw), lw, torch.full_like(lw, -1e300))
         return (lw - torch.logsumexp(lw, 0)).to(v_lik.dtype)
 
+    def _selection_order(self, v_lik: torch.Tensor, origin: torch.Tensor, jumped: torch.Tensor,
+                         prior_lw: torch.Tensor) -> torch.Tensor:
+        """The key :func:`distinct_minima` ranks by: the likelihood energy, with the reserved
+        continuations (``continuations``) moved ahead of every other minimum."""
+        if not self.continuations:
+            return v_lik
+        key = v_lik.double().clone()
+        finite = torch.isfinite(key)
+        if not bool(finite.any()):
+            return v_lik
+        shift = float(key[finite].max() - key[finite].min()) + 1.0
+        top = torch.argsort(prior_lw.double().to(key.device), descending=True)
+        for m in top[: self.continuations].tolist():
+            cand = ((origin == m) & ~jumped & finite).nonzero().squeeze(1)
+            if cand.numel():
+                best = cand[key[cand].argmin()]
+                key[best] -= shift
+        return key
+
     def _prior(self, energy, context, lo, hi, prec):
         """Prior components ``(means, covs, log_w)`` and whether they came from the carry."""
         prev = context.previous
@@ -657,7 +683,7 @@ class MixtureInference(Inference):
         K0 = p_means.shape[0]
         modes, covs, lw = p_means, p_covs, p_lw
         mode_origin = torch.arange(K0, device=prev.device)
-        X = V = VL = ORIG = ANCH = None
+        X = V = VL = ORIG = ANCH = JMP = None
         stats_all: list[dict] = []
         min_energy: list[float] = []
         samples = 0
@@ -684,12 +710,16 @@ class MixtureInference(Inference):
             jumped = drawn.stats.get("jumped") if isinstance(drawn.stats, dict) else None
             anchors = p_means[origin]
             if jumped is not None and torch.as_tensor(jumped).shape == (x0.shape[0],):
-                anchors = torch.where(torch.as_tensor(jumped, device=prev.device)[:, None],
-                                      x0, anchors)
+                jumped = torch.as_tensor(jumped, device=prev.device).bool()
+                anchors = torch.where(jumped[:, None], x0, anchors)
+            else:
+                jumped = torch.zeros(x0.shape[0], dtype=torch.bool, device=prev.device)
             if layer == 0 and self.reoptimise_modes:
                 x0 = torch.cat([p_means, x0])
                 origin = torch.cat([torch.arange(K0, device=prev.device), origin])
                 anchors = torch.cat([p_means, anchors])
+                jumped = torch.cat([torch.zeros(K0, dtype=torch.bool, device=prev.device),
+                                    jumped])
             ta = time.perf_counter()
             x, v, v_lik, its = self._optimise(energy, x0, anchors, prec, lo, hi)
             t_opt += time.perf_counter() - ta
@@ -700,8 +730,11 @@ class MixtureInference(Inference):
             VL = v_lik if VL is None else torch.cat([VL, v_lik])
             ORIG = origin if ORIG is None else torch.cat([ORIG, origin])
             ANCH = anchors if ANCH is None else torch.cat([ANCH, anchors])
+            JMP = jumped if JMP is None else torch.cat([JMP, jumped])
             min_energy.append(float(v_lik.min()))
-            reps = distinct_minima(self._merge_coordinates(X), VL, self.merge_distance)
+            reps = distinct_minima(self._merge_coordinates(X),
+                                   self._selection_order(VL, ORIG, JMP, p_lw),
+                                   self.merge_distance)
             n_minima = int(reps.numel())
             keep = reps[: self.components]
             modes = X[keep]
@@ -739,7 +772,7 @@ class MixtureInference(Inference):
         return (f"components={self.components}, layers={self.layers}, iterations="
                 f"{self.iterations}, optimiser={self.optimiser!r}, hessian={self.hessian!r}, "
                 f"merge_distance={self.merge_distance}, merge_space={self.merge_space!r}, "
-                f"prior_std_deg={self.prior_std_deg}")
+                f"prior_std_deg={self.prior_std_deg}, continuations={self.continuations}")
 
 
 #: the local optimisers of :class:`MixtureInference` by name (``"auto"`` picks one of them)
