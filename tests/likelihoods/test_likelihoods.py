@@ -611,3 +611,16 @@ def test_self_occlusion_handling_lowers_the_true_pose_energy():
     assert e["rays"][0] < 0.6 * e["none"][0]
     assert e["outlier"][0] < 0.8 * e["none"][0]
     assert e["rays"][1] / e["rays"][0] > 1.5 * e["none"][1] / e["none"][0]
+
+
+def test_first_max_mask_equals_argmax_with_ties():
+    """The outlier mode's view mask: the first maximum of every column, as ``argmax(0)``
+    (quantised colours make exact ties between views common)."""
+    from torchmocap.likelihoods.appearance import _first_max
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.randint(0, 3, (4, 500), generator=g).float()  # many ties
+    x[:, :5] = -1.0
+    mask = _first_max(x)
+    assert torch.equal(mask, torch.arange(4)[:, None] == x.argmax(0))
+    assert torch.equal(mask.sum(0), torch.ones(500, dtype=torch.long))
