@@ -37,6 +37,8 @@ RESULTS = HERE / "results"
 CLIPS = {"dance_cmu21": "dance (CMU21)", "salsa": "salsa (CMU 60_12)",
          "boxing": "boxing (CMU21 box-1)"}
 TRACKERS = {"kjs": "KJS + CSS", "css": "CSS", "ss": "SS"}
+#: labels of the run directories (``tracker.name``) beyond the three presets
+LABELS = {**TRACKERS, "kjs_continuations": "KJS + CSS, continuations = 4"}
 SEEDS = [0, 1, 2, 3, 4]
 
 
@@ -143,7 +145,7 @@ def markdown(table: dict, clips, trackers, missing: list[str]) -> str:
             r = table.get((c, t))
             if r is None:
                 continue
-            cells = [CLIPS.get(c, c), TRACKERS.get(t, t),
+            cells = [CLIPS.get(c, c), LABELS.get(t, t),
                      f"{r['mpjpe'][0]:.1f} ± {r['mpjpe'][1]:.1f}"]
             if has_f:
                 f = r.get("filtered")
@@ -181,7 +183,7 @@ def plot(table: dict, clips, trackers, path: Path, fps: float = 25.0) -> None:
             if r is None:
                 continue
             xs = [(i + 1) / fps for i in range(len(r["curve"]))]
-            ax.plot(xs, r["curve"], lw=1.2, label=TRACKERS.get(t, t))
+            ax.plot(xs, r["curve"], lw=1.2, label=LABELS.get(t, t))
             label = r["curve_label"]
         ax.set_title(CLIPS.get(c, c), fontsize=9)
         ax.set_ylabel(label, fontsize=8)
