@@ -450,7 +450,7 @@ class MixtureInference(Inference):
         follow_prediction: shift the prior modes by ``prediction - previous estimate``.
         reoptimise_modes: also optimise the prior modes themselves.
         continuations: keep, before the ``K`` lowest-energy minima are chosen, the best
-            *continuation* of each of the this many highest-weight prior modes: its
+            *continuation* of each of this many highest-weight prior modes: its
             lowest-energy descendant that was not kinematically jumped (with
             ``reoptimise_modes``, at worst the re-optimised prior mode itself). Jumps then fill
             only the remaining slots, so a tracked interpretation is not pushed out by mirror
