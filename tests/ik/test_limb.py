@@ -92,24 +92,28 @@ class TestSolveLimb:
         assert len(limb_dofs(sk, limb)) == (6 if "leg" in limb else 4)
 
     @pytest.mark.parametrize("method", ["closed_form", "auto"])
-    def test_feature_broadcast_pose_equals_the_expanded_call(self, sk, method):
+    @pytest.mark.parametrize("model, limb", [("sk", "r_leg"), ("sk", "l_arm"),
+                                             ("ub", "r_arm")])
+    def test_feature_broadcast_pose_equals_the_expanded_call(self, request, model, limb,
+                                                             method):
         """One pose per row broadcast over several target sets ``(B, 1, D)`` x ``(B, L, M, 3)``
         (the leaves of an interpretation tree: the frame above the limb is posed once per row)
-        gives exactly the result of the expanded ``(B * L, D)`` call."""
+        gives exactly the result of the expanded ``(B * L, D)`` call, and the reported residual
+        is the distance of the fully posed skeleton's limb joints from the targets."""
+        sk = request.getfixturevalue(model)
         g = torch.Generator().manual_seed(3)
         B, L = 4, 5
         th = _poses(sk, B, g)
-        tg = _targets(sk, _poses(sk, B * L, g), "r_leg").reshape(B, L, -1, 3)
-        tg = tg - tg[:, :, :1] + _targets(sk, th, "r_leg")[:, None, :1]  # reachable-ish
-        a = solve_limb(sk, th[:, None], "r_leg", tg, method=method)
-        b = solve_limb(sk, th[:, None].expand(B, L, -1).reshape(B * L, -1), "r_leg",
+        tg = _targets(sk, _poses(sk, B * L, g), limb).reshape(B, L, -1, 3)
+        tg = tg - tg[:, :, :1] + _targets(sk, th, limb)[:, None, :1]  # reachable-ish
+        a = solve_limb(sk, th[:, None], limb, tg, method=method)
+        b = solve_limb(sk, th[:, None].expand(B, L, -1).reshape(B * L, -1), limb,
                        tg.reshape(B * L, -1, 3), method=method)
         assert a.theta.shape == (B, L, sk.num_dofs)
         assert torch.equal(a.theta.reshape(B * L, -1), b.theta)
         assert torch.equal(a.residual.reshape(-1), b.residual)
         assert torch.equal(a.within_limits.reshape(-1), b.within_limits)
-        # the reported residual is the distance of the posed limb's joints from the targets
-        pos = _targets(sk, a.theta, "r_leg")
+        pos = _targets(sk, a.theta, limb)
         assert torch.allclose((pos - tg).norm(dim=-1).amax(-1), a.residual, atol=1e-12)
 
     @pytest.mark.parametrize("limb", LIMBS)
