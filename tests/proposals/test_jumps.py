@@ -4,6 +4,7 @@ voting, the proposal's contract (exactly num samples, statistics, a CSS base).""
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import pytest
@@ -222,9 +223,10 @@ class TestKinematicJumpProposal:
 
     @pytest.mark.parametrize("include_original", [True, False])
     def test_feature_leaves_are_the_product_of_the_trees_in_order(self, mono, include_original):
-        """The vectorised leaf assembly of the proposal equals :func:`kinematic_jumps` (the
-        enumeration by ``itertools.product``) pose for pose and in order, for two modes that
-        flip different chain pairs, with and without the unflipped combination."""
+        """The vectorised leaf assembly of the proposal (and of :func:`kinematic_jumps`)
+        equals an enumeration of the trees' kept leaves by ``itertools.product``, pose for pose
+        and in order, for two modes that flip different chain pairs, with and without the
+        unflipped combination."""
         sk, rig, th = mono
         D = sk.num_dofs
         th2 = th.clone()
@@ -245,12 +247,24 @@ class TestKinematicJumpProposal:
         n = out.stats["unique"]
         got, comp = out.particles[:n], out.stats["component"][:n]
         for k, pair in enumerate(pairs):
+            per = [limb_flips(sk, modes[k][None], limb, c) for limb in pair]
+            want, flipped = [], []
+            for combo in itertools.product(*[p.kept[0].nonzero()[:, 0].tolist() for p in per]):
+                if not include_original and not any(combo):
+                    continue
+                x = modes[k].clone()
+                for p, leaf in zip(per, combo):
+                    x[p.dofs] = p.theta[0, leaf, p.dofs]
+                want.append(x)
+                flipped.append(any(combo))
+            want = torch.stack(want)
+            mine = got[comp == k]
+            assert want.shape[0] > 2 and mine.shape == want.shape
+            assert torch.equal(mine, want)
+            assert out.stats["jumped"][:n][comp == k].tolist() == flipped
             ref = kinematic_jumps(sk, modes[k], list(pair), c,
                                   include_original=include_original)
-            mine = got[comp == k]
-            assert ref.kept > 2 and mine.shape == ref.theta.shape
-            assert torch.equal(mine, ref.theta)
-            assert torch.equal(out.stats["jumped"][:n][comp == k], ref.flips.any(1))
+            assert torch.equal(ref.theta, want) and ref.flips.any(1).tolist() == flipped
         assert out.stats["kept"] == n
 
     def test_feature_jumps_of_covariance_scaled_samples(self, mono):

@@ -54,7 +54,6 @@ Example:
 
 from __future__ import annotations
 
-import itertools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -226,6 +225,43 @@ def limb_flips(skeleton, theta: torch.Tensor, chain, camera_center: torch.Tensor
     return LimbFlips(out, kept, valid, within, resid, positions, flips, joints, list(plan.dofs))
 
 
+def _combine_leaves(x: torch.Tensor, per: Sequence[LimbFlips], include_original: bool = True
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every combination of the leaves of several limbs' trees, for a batch of poses.
+
+    Args:
+        x: ``(B, D)`` the poses the trees were grown from.
+        per: one :class:`LimbFlips` of ``x`` per limb (distinct limbs).
+        include_original: keep the combination without any flip.
+
+    Returns:
+        ``poses (B, C, D)``, ``kept (B, C)`` (every limb's leaf kept, and some flip unless
+        ``include_original``), ``flips (C, sum K)`` (the limbs' flip patterns side by side) and
+        ``flipped (C,)`` (some link flipped), ``C = prod L`` combinations in the order of
+        ``itertools.product`` over the limbs' leaves (the first limb's leaf slowest).
+    """
+    B, D = x.shape
+    dev = x.device
+    sizes = [p.flips.shape[0] for p in per]
+    grid = torch.meshgrid(*[torch.arange(n, device=dev) for n in sizes], indexing="ij")
+    combos = torch.stack([g.reshape(-1) for g in grid], 1)  # (C, limbs)
+    flipped = combos.ne(0).any(1)
+    poses = x[:, None].expand(B, combos.shape[0], D).clone()
+    kept = torch.ones(B, combos.shape[0], dtype=torch.bool, device=dev)
+    patterns = []
+    for s, p in enumerate(per):
+        leaf = combos[:, s]
+        dofs = torch.tensor(p.dofs, dtype=torch.long, device=dev)
+        poses[:, :, dofs] = p.theta.index_select(1, leaf).index_select(2, dofs)
+        kept &= p.kept.index_select(1, leaf)
+        patterns.append(p.flips.to(dev).index_select(0, leaf))
+    if not include_original:
+        kept &= flipped[None]
+    flips = torch.cat(patterns, 1) if patterns else torch.zeros(combos.shape[0], 0,
+                                                                dtype=torch.bool, device=dev)
+    return poses, kept, flips, flipped
+
+
 @dataclass
 class KinematicJumps:
     """The product of the trees of several chains for one pose (:func:`kinematic_jumps`).
@@ -273,21 +309,8 @@ def kinematic_jumps(skeleton, theta: torch.Tensor, chains: Sequence, camera_cent
            for c in chs]
     n_leaves = math.prod(p.flips.shape[0] for p in per)
     n_valid = math.prod(int(p.valid[0].sum()) for p in per)
-    kept_idx = [p.kept[0].nonzero()[:, 0].tolist() for p in per]
-    poses, patterns = [], []
-    for combo in itertools.product(*kept_idx):
-        if not include_original and not any(combo):
-            continue
-        x = theta.clone()
-        pat = []
-        for p, leaf in zip(per, combo):
-            x[p.dofs] = p.theta[0, leaf, p.dofs]
-            pat.append(p.flips[leaf])
-        poses.append(x)
-        patterns.append(torch.cat(pat) if pat else torch.zeros(0, dtype=torch.bool))
-    D = theta.shape[0]
-    th = torch.stack(poses) if poses else theta.new_zeros(0, D)
-    fl = torch.stack(patterns) if patterns else torch.zeros(0, 0, dtype=torch.bool)
+    poses, kept, flips, _ = _combine_leaves(theta[None], per, include_original)
+    th, fl = poses[0][kept[0]], flips[kept[0]]
     return KinematicJumps(th, fl, n_leaves, n_valid, th.shape[0])
 
 
@@ -409,7 +432,6 @@ class KinematicJumpProposal(Proposal):
         product of its chains' trees, the first chain slowest): poses ``(N, D)``, a flag per
         leaf (some link flipped) and the index of its start ``(N,)``."""
         c = self.camera_center(starts)
-        D = starts.shape[-1]
         dev = starts.device
         groups: dict[tuple[int, ...], list[int]] = {}
         for i, k in enumerate(comp.tolist()):
@@ -425,22 +447,9 @@ class KinematicJumpProposal(Proposal):
             for m in sel:
                 stats["votes"][self.chains[m].name] = stats["votes"].get(
                     self.chains[m].name, 0) + nb
-            sizes = [p.flips.shape[0] for p in per]
-            stats["leaves"] += nb * math.prod(sizes)
+            stats["leaves"] += nb * math.prod(p.flips.shape[0] for p in per)
             stats["valid"] += int(torch.stack([p.valid.sum(1) for p in per]).prod(0).sum())
-            # every combination of the chains' leaves, the first chain's index slowest
-            grid = torch.meshgrid(*[torch.arange(n, device=dev) for n in sizes], indexing="ij")
-            combos = torch.stack([g.reshape(-1) for g in grid], 1)  # (C, chains)
-            flipped = combos.ne(0).any(1)  # (C,)
-            poses = x[:, None].expand(nb, combos.shape[0], D).clone()
-            kept = torch.ones(nb, combos.shape[0], dtype=torch.bool, device=dev)
-            for s, p in enumerate(per):
-                leaf = combos[:, s]
-                dofs = torch.tensor(p.dofs, dtype=torch.long, device=dev)
-                poses[:, :, dofs] = p.theta.index_select(1, leaf).index_select(2, dofs)
-                kept &= p.kept.index_select(1, leaf)
-            if not self.include_original:
-                kept &= flipped[None]
+            poses, kept, _, flipped = _combine_leaves(x, per, self.include_original)
             b, k = kept.nonzero(as_tuple=True)  # row-major: start by start, combos in order
             poses_all.append(poses[b, k])
             jumped_all.append(flipped[k])
