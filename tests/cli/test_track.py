@@ -141,6 +141,9 @@ def test_upper_body_tracker_on_a_walk_warns_that_the_held_torso_moves(tmp_path, 
 
 def test_smoothed_run_reports_the_filtered_errors_beside(tmp_path):
     import numpy as np
+    import torch
+
+    from torchmocap.cli.runs import load_sequence
 
     cfg = _compose(["tracker=kjs", "+smoother@tracker.smoother=viterbi", "data.clip.frames=5",
                     "tracker.num_particles=24", "tracker.inference.components=3",
@@ -155,6 +158,45 @@ def test_smoothed_run_reports_the_filtered_errors_beside(tmp_path):
     assert z["theta_filtered"].shape == z["theta"].shape == (5, 31)
     if m["smoother"]["changed_frames"] == 0:
         assert m["filtered"]["mpjpe_mm"] == pytest.approx(m["mpjpe_mm"]["mean"])
+    # every frame's kept modes are saved: the smoothed pose is one of them, the filtered one is
+    # the top-weighted one, and the saved modes reproduce the best-hypothesis error reported
+    H, w, e = z["hypotheses"], z["hypothesis_weights"], z["hypothesis_energy"]
+    K = H.shape[1]
+    assert H.shape == (5, K, 31) and w.shape == e.shape == (5, K) and 1 <= K <= 3
+    assert np.isnan(H[0]).all() and np.isnan(w[0]).all()
+    seq = load_sequence(cfg, min_frames=2)
+    sk_fit = seq.ground_truth.build_skeleton()
+    best = []
+    for t in range(1, 5):
+        ok = ~np.isnan(w[t])
+        assert ok.sum() == m["hypotheses"]["modes"]["per_frame"][t - 1]
+        assert np.isfinite(e[t, ok]).all() and np.isnan(H[t, ~ok]).all()
+        assert np.abs(H[t, ok] - z["theta"][t]).max(1).min() < 1e-6
+        assert np.abs(H[t, np.nanargmax(w[t])] - z["theta_filtered"][t]).max() < 1e-6
+        pos = sk_fit(torch.as_tensor(H[t, ok], dtype=torch.float64)).positions
+        best.append(float((pos - seq.ground_truth.positions[t].double()).norm(dim=-1)
+                          .mean(-1).min()) * 1000)
+    assert np.mean(best) == pytest.approx(hyp["mpjpe_best_mm"]["mean"], rel=1e-3)
+
+
+def test_hypothesis_arrays_pad_missing_modes_with_nan():
+    import numpy as np
+
+    from torchmocap.cli.track import hypothesis_arrays
+
+    infos = [{}, {"hypotheses": [[0.1, 0.2], [0.3, 0.4]], "hypothesis_weights": [0.7, 0.3],
+                  "mode_energy": [1.0, 2.0]},
+             {"hypotheses": [[0.5, 0.6]], "hypothesis_weights": [1.0], "mode_energy": [3.0]}]
+    a = hypothesis_arrays(infos, 2)
+    assert a["hypotheses"].shape == (3, 2, 2) and a["hypotheses"].dtype == np.float32
+    np.testing.assert_allclose(a["hypotheses"][1], [[0.1, 0.2], [0.3, 0.4]], rtol=1e-6)
+    np.testing.assert_allclose(a["hypotheses"][2, 0], [0.5, 0.6], rtol=1e-6)
+    assert np.isnan(a["hypotheses"][2, 1]).all() and np.isnan(a["hypotheses"][0]).all()
+    np.testing.assert_allclose(a["hypothesis_weights"][1], [0.7, 0.3], rtol=1e-6)
+    np.testing.assert_allclose(a["hypothesis_energy"][2], [3.0, np.nan], rtol=1e-6)
+    assert hypothesis_arrays([{}, {"ess": [1.0]}], 2) == {}  # single-estimate inferences
+    with pytest.raises(ValueError, match=r"infos\[1\]\['hypotheses'\]: expected \(K, 3\)"):
+        hypothesis_arrays(infos, 3)
 
 
 def test_energy_vs_truth_diagnostic(tmp_path):

@@ -135,7 +135,8 @@ def finish(cfg, out: Path, seq, runtime, tracker, track, fingerprint: str,
         **_diagnostics(track.infos),
         **(extra or {}),
     }
-    arrays = {"theta": track.theta.numpy(), "dof_names": np.array(sk.dof_names)}
+    arrays = {"theta": track.theta.numpy(), "dof_names": np.array(sk.dof_names),
+              **hypothesis_arrays(track.infos, sk.num_dofs)}
     smoothing = track.infos[0].get("smoother") if isinstance(track.infos[0], dict) else None
     if track.filtered is not None:  # theta is smoothed; the filter's own estimates beside it
         arrays["theta_filtered"] = track.filtered.numpy()
@@ -294,6 +295,37 @@ def _marker_error(seq, runtime, theta) -> dict:
         per_part.setdefault(p, []).append(k)
     return {"mean": float(d.mean()), "per_frame": [round(float(v), 3) for v in d.mean(1)],
             "per_part": {p: float(d[:, ks].mean()) for p, ks in per_part.items()}}
+
+
+def hypothesis_arrays(infos: list, num_dofs: int) -> dict:
+    """What a multi-hypothesis inference kept per frame, as arrays for ``track.npz``:
+    ``hypotheses (T, K, D)`` (the modes, radians / metres), ``hypothesis_weights (T, K)`` and
+    ``hypothesis_energy (T, K)`` (each mode's likelihood energy), ``K`` the most modes of any
+    frame; frames with fewer modes (and frame 0, the given start) are padded with NaN. Empty
+    when no frame holds ``info["hypotheses"]``."""
+    import numpy as np
+
+    rows = [i.get("hypotheses") if isinstance(i, dict) else None for i in infos]
+    K = max((len(r) for r in rows if r), default=0)
+    if not K:
+        return {}
+    T = len(infos)
+    hyp = np.full((T, K, num_dofs), np.nan, dtype=np.float32)
+    w = np.full((T, K), np.nan, dtype=np.float32)
+    e = np.full((T, K), np.nan, dtype=np.float32)
+    for t, (info, r) in enumerate(zip(infos, rows)):
+        if not r:
+            continue
+        H = np.asarray(r, dtype=np.float32)
+        if H.ndim != 2 or H.shape[1] != num_dofs:
+            raise ValueError(f"infos[{t}]['hypotheses']: expected (K, {num_dofs}), got "
+                             f"{H.shape}")
+        hyp[t, : len(H)] = H
+        for key, arr in (("hypothesis_weights", w), ("mode_energy", e)):
+            v = info.get(key)
+            if v is not None and len(v) == len(H):
+                arr[t, : len(H)] = np.asarray(v, dtype=np.float32)
+    return {"hypotheses": hyp, "hypothesis_weights": w, "hypothesis_energy": e}
 
 
 def _hypotheses(seq, sk, infos) -> dict:
