@@ -164,6 +164,47 @@ class TestCapsuleDistance:
         torch.testing.assert_close(body.endpoints(kin.positions), ep)
 
 
+class TestAxisOffsets:
+    def test_feature_offset_moves_the_capsule_in_the_parent_frame(self, sk):
+        g = torch.Generator().manual_seed(3)
+        theta = 0.4 * torch.randn(4, sk.num_dofs, generator=g, dtype=F64)
+        kin = sk(theta)
+        plain = CapsuleBody(sk).double()
+        off = {"head_top": [0.0, -0.05, 0.01], "l_elbow": [0.02, 0.0, 0.0]}
+        body = CapsuleBody(sk, axis_offsets=off).double()
+        assert body.has_axis_offsets and not plain.has_axis_offsets
+        ep, ep0 = body.endpoints(kin), plain.endpoints(kin)
+        for b, v in off.items():
+            i = body.bone_names.index(b)
+            R = kin.rotations[:, sk.joint_names.index(sk.joint_names[
+                sk.parents[sk.joint_names.index(b)]])]  # (4, 3, 3) the parent joint's frame
+            shift = R @ torch.tensor(v, dtype=F64)
+            torch.testing.assert_close(ep[:, i], ep0[:, i] + shift[:, None])
+        others = [i for i, b in enumerate(body.bone_names) if b not in off]
+        torch.testing.assert_close(ep[:, others], ep0[:, others])
+        # the offset is rigid with the parent: the distance from the parent joint is kept
+        i = body.bone_names.index("head_top")
+        head = kin.positions[:, sk.joint_names.index("head")]
+        d = (ep[:, i, 0] - head).norm(dim=-1)
+        torch.testing.assert_close(d, torch.full_like(d, math.hypot(0.05, 0.01)))
+        assert torch.autograd.gradcheck(
+            lambda th: body.skin_distance(torch.tensor([[0.1, -0.2, 1.6]], dtype=F64), sk(th)),
+            (theta[:1].clone().requires_grad_(True),))
+
+    def test_exception(self, sk):
+        with pytest.raises(ValueError, match="axis_offsets: unknown bone 'nose'"):
+            CapsuleBody(sk, axis_offsets={"nose": [0, 0, 0]})
+        with pytest.raises(ValueError, match=r"axis_offsets\['head_top'\]: expected 3"):
+            CapsuleBody(sk, axis_offsets={"head_top": [0, 0]})
+        body = CapsuleBody(sk, axis_offsets={"head_top": [0, -0.05, 0]})
+        kin = sk(sk.zero_pose((2,)))
+        with pytest.raises(ValueError, match="axis offsets.*Kinematics"):
+            body.endpoints(kin.positions)
+        with pytest.raises(ValueError, match="rotations"):
+            capsule_endpoints(kin.positions, body.parent_index, body.child_index,
+                              axis_offsets=body.axis_offsets)
+
+
 class TestRadii:
     def test_feature_human31(self, sk):
         body = CapsuleBody(sk)

@@ -45,6 +45,35 @@ def test_recovers_thicker_limbs():
         fit(th, Frame(index=0, time=0.0))
 
 
+def test_recovers_a_head_in_front_of_the_neck():
+    """Masks of a body whose head capsule sits 5 cm in front of its bone: the fit with
+    ``offsets=["head_top"]`` moves the model's head there; without it no offset is fitted."""
+    sk = human31()
+    rig = make_ring_rig(4).float()
+    th = sk.zero_pose()
+    th[sk.dof_index("pelvis_rz")] = 0.5  # not facing a camera square on
+    th[sk.dof_index("neck_flex")] = 0.3
+    truth = CapsuleBody(sk, axis_offsets={"head_top": [0.0, -0.05, 0.0]}).float()
+    frame = Frame(index=0, time=0.0, silhouettes=capsule_masks(truth, rig, th))
+    body = CapsuleBody(sk).float()
+    info = SilhouetteBodyFit(body, rig, iterations=80, stride=2, offsets=["head_top"],
+                             offset_prior=0.0)(th, frame)
+    got = body.axis_offsets[body.bone_names.index("head_top")]
+    assert float(got[1]) == pytest.approx(-0.05, abs=0.012), got
+    assert float(got[[0, 2]].abs().max()) < 0.012, got
+    assert info["offsets"]["head_top"] == pytest.approx(got.tolist(), abs=1e-4)
+    assert info["iou_after"] > info["iou_before"] + 0.005
+    others = [i for i, b in enumerate(body.bone_names) if b != "head_top"]
+    assert not bool(body.axis_offsets[others].any())
+    plain = CapsuleBody(sk).float()
+    info = SilhouetteBodyFit(plain, rig, iterations=20, stride=2)(th, frame)
+    assert "offsets" not in info and not plain.has_axis_offsets
+    with pytest.raises(ValueError, match="offsets: unknown bones"):
+        SilhouetteBodyFit(plain, rig, offsets=["nose"])
+    with pytest.raises(ValueError, match="max_offset"):
+        SilhouetteBodyFit(plain, rig, offsets=["head_top"], max_offset=0.0)
+
+
 def test_tracker_refit_passes_alternate_pose_and_body():
     """Coarse to fine on the first frame (``refit_passes``): pose refined with the fitted body,
     kept only when its energy is lower, body refitted; a real_frame_hull preset in small."""
@@ -90,3 +119,32 @@ def test_tracker_refit_passes_alternate_pose_and_body():
     with pytest.raises(ValueError, match="refit_scale"):
         Tracker(sk, tr.predictor, tr.proposal, tr.likelihood, tr.inference, tr.estimator,
                 refit_scale=0.0)
+
+
+def test_checkpoint_keeps_the_fitted_body(tmp_path):
+    """Radii and axis offsets fitted at the start are in the checkpoint: a resumed run tracks
+    with the same body."""
+    from torchmocap.assembly import Runtime, build_tracker, tracker_config
+    from torchmocap.filters.tracker import TrackState
+
+    sk = human31().float()
+    rig = make_ring_rig(4).float()
+    rt = Runtime(skeleton=sk, body=CapsuleBody(sk).float(), rig=rig)
+    cfg = tracker_config("g", ["+body_fit@tracker.body_fit=silhouette",
+                               "tracker.body_fit.offsets=[head_top]"])
+    tr = build_tracker(cfg, rt, seed=0)
+    assert tr.body_fit.offset_bones == ["head_top"]
+    fitted_r = rt.body.radii * 1.2
+    fitted_o = torch.zeros_like(rt.body.axis_offsets)
+    fitted_o[rt.body.bone_names.index("head_top")] = torch.tensor([0.0, -0.04, -0.01])
+    rt.body.radii.copy_(fitted_r)
+    rt.body.axis_offsets.copy_(fitted_o)
+    state = TrackState(history=sk.zero_pose()[None], frame=0,
+                       generator_state=torch.Generator().get_state())
+    path = str(tmp_path / "ckpt.pt")
+    tr.save_checkpoint(state, path)
+    rt.body.radii.div_(1.2)
+    rt.body.axis_offsets.zero_()
+    tr.load_checkpoint(path)
+    torch.testing.assert_close(rt.body.radii, fitted_r)
+    torch.testing.assert_close(rt.body.axis_offsets, fitted_o)

@@ -129,12 +129,16 @@ def _positions(kin: Any) -> Tensor:
 
 
 def capsule_endpoints(positions: Tensor, parent_index: Tensor, child_index: Tensor,
-                      end_shrink: Tensor | None = None) -> Tensor:
+                      end_shrink: Tensor | None = None, rotations: Tensor | None = None,
+                      axis_offsets: Tensor | None = None) -> Tensor:
     """Bone segments ``(*, B, 2, 3)`` (start = parent joint, end = child joint) from ``(*, J, 3)``.
 
     ``end_shrink (B,)`` pulls each segment's end back towards its start by that many metres
     (at most the bone length): with the capsule radius for bones ending at an end site (head top,
     toe, hand tip) the skin then ends at the end site instead of a radius beyond it.
+    ``axis_offsets (B, 3)`` moves each whole segment by that vector in its parent joint's frame
+    (``rotations (*, J, 3, 3)``, the joints' global orientations): a capsule whose flesh does not
+    sit on the bone, e.g. a head whose centre lies in front of the neck's axis.
     """
     if positions.dim() < 2 or positions.shape[-1] != 3:
         raise ValueError(f"positions: expected shape (*, J, 3), got {tuple(positions.shape)}")
@@ -145,6 +149,14 @@ def capsule_endpoints(positions: Tensor, parent_index: Tensor, child_index: Tens
         L = _safe_norm(ab)
         k = torch.minimum(end_shrink.to(ab.dtype), L) / L
         b = b - k[..., None] * ab
+    if axis_offsets is not None:
+        if rotations is None or rotations.shape[-2:] != (3, 3) or \
+                rotations.shape[:-2] != positions.shape[:-1]:
+            raise ValueError("rotations: capsule axis offsets need the joints' global rotations "
+                             f"(*, J, 3, 3) beside positions {tuple(positions.shape)}, got "
+                             f"{None if rotations is None else tuple(rotations.shape)}")
+        off = (rotations[..., parent_index, :, :] @ axis_offsets.to(a)[:, :, None])[..., 0]
+        a, b = a + off, b + off
     return torch.stack([a, b], -2)
 
 
@@ -470,6 +482,9 @@ class CapsuleBody(nn.Module):
         height: stature in metres (default: rest joints' z-extent).
         shorten_end_sites: pull the end of bones that end at an end site (a joint without
             children) back by the radius, so the skin ends there (default True).
+        axis_offsets: ``{bone_name: (x, y, z)}`` metres: the capsule moved off its bone by this
+            vector in the parent joint's frame (default: every capsule on its bone). Fitted to a
+            subject by :class:`~torchmocap.filters.body_fit.SilhouetteBodyFit` (``offsets``).
 
     Example:
         >>> from torchmocap.skeleton import human31
@@ -483,9 +498,11 @@ class CapsuleBody(nn.Module):
     child_index: Tensor
     radii: Tensor
     end_shrink: Tensor
+    axis_offsets: Tensor
 
     def __init__(self, skeleton: nn.Module, radii: Mapping[str, float] | None = None,
-                 height: float | None = None, shorten_end_sites: bool = True) -> None:
+                 height: float | None = None, shorten_end_sites: bool = True,
+                 axis_offsets: Mapping[str, Any] | None = None) -> None:
         super().__init__()
         self.skeleton = skeleton
         parents = list(skeleton.parents)
@@ -507,6 +524,20 @@ class CapsuleBody(nn.Module):
         shrink = torch.where(leaf, self.radii, torch.zeros_like(self.radii))
         self.register_buffer("end_shrink", shrink if shorten_end_sites else torch.zeros_like(
             self.radii))
+        off = torch.zeros(len(child), 3, dtype=self.radii.dtype)
+        for bone, v in (axis_offsets or {}).items():
+            if bone not in self.bone_names:
+                raise ValueError(f"axis_offsets: unknown bone {bone!r}; bones: {self.bone_names}")
+            t = torch.as_tensor(v, dtype=off.dtype)
+            if t.shape != (3,) or not bool(torch.isfinite(t).all()):
+                raise ValueError(f"axis_offsets[{bone!r}]: expected 3 finite metres, got {v!r}")
+            off[self.bone_names.index(bone)] = t
+        self.register_buffer("axis_offsets", off)
+
+    @property
+    def has_axis_offsets(self) -> bool:
+        """Whether any capsule is moved off its bone (``endpoints`` then needs rotations)."""
+        return bool(self.axis_offsets.any())
 
     @property
     def num_bones(self) -> int:
@@ -516,9 +547,16 @@ class CapsuleBody(nn.Module):
         return float(self.radii[self.bone_names.index(bone)])
 
     def endpoints(self, kin: Any) -> Tensor:
-        """Capsule axes ``(*, B, 2, 3)`` from ``Kinematics`` (or positions ``(*, J, 3)``)."""
-        return capsule_endpoints(_positions(kin), self.parent_index, self.child_index,
-                                 self.end_shrink)
+        """Capsule axes ``(*, B, 2, 3)`` from ``Kinematics`` (or positions ``(*, J, 3)`` when no
+        capsule has an axis offset)."""
+        if not self.has_axis_offsets:
+            return capsule_endpoints(_positions(kin), self.parent_index, self.child_index,
+                                     self.end_shrink)
+        if not hasattr(kin, "rotations"):
+            raise ValueError("kin: this body has capsule axis offsets, which need the joints' "
+                             "rotations: pass Kinematics (skeleton(theta)), not positions")
+        return capsule_endpoints(kin.positions, self.parent_index, self.child_index,
+                                 self.end_shrink, kin.rotations, self.axis_offsets)
 
     def forward(self, theta: Tensor) -> Tensor:
         """Capsule axes ``(*, B, 2, 3)`` of poses ``theta (*, D)``."""
@@ -548,4 +586,8 @@ class CapsuleBody(nn.Module):
         return export_mesh(self.to_trimesh(kin), path)
 
     def extra_repr(self) -> str:
-        return f"num_bones={self.num_bones}, height={self.height:.3f}"
+        out = f"num_bones={self.num_bones}, height={self.height:.3f}"
+        if self.has_axis_offsets:
+            moved = [b for b, o in zip(self.bone_names, self.axis_offsets) if bool(o.any())]
+            out += f", axis_offsets={moved}"
+        return out

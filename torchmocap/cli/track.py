@@ -478,6 +478,9 @@ def _diagnostics(infos: list) -> dict:
             "energy_after": _number(fits[-1].get("energy_after")),
             "scales": {str(k): _number(v) for k, v in dict(fits[-1].get("scales", {})).items()},
             "passes": len(fits)}
+        if isinstance(fits[-1].get("offsets"), dict):  # capsules moved off their bones (m)
+            out["body_fit"]["offsets"] = {str(k): [_number(x) for x in v]
+                                          for k, v in fits[-1]["offsets"].items()}
     return out
 
 

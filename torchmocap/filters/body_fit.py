@@ -12,6 +12,13 @@ and the masks with Adam, within ``[min_scale, max_scale]`` of the initial radii.
 at the true pose its optimum lowers the IoU from 0.78 to 0.70.) Bone lengths are the subject's
 (fitted to the motion capture or scaled to the visual hull) and are not changed. The body is
 updated in place, so every likelihood term that holds it sees the fitted radii.
+
+With ``offsets`` (bone names) the same objective also moves those capsules off their bones (an
+axis offset in the parent joint's frame, :class:`~torchmocap.body.CapsuleBody`
+``axis_offsets``): a real head's centre lies several centimetres in front of the neck's axis
+(the bundled mesh's head spans 17 cm in front of it and 5 cm behind), the chest and belly in
+front of the spine; a capsule centred on the bone makes the silhouette term tilt the neck forward
+to cover the face.
 """
 
 from __future__ import annotations
@@ -55,15 +62,22 @@ class SilhouetteBodyFit(nn.Module):
         prior_weight: pull of every log-scale towards 0 (holds segments the silhouettes do not
             see, e.g. capsules hidden inside the torso).
         fg_samples: foreground pixels per view of the silhouette energy that is reported.
+        offsets: bones (capsule names, e.g. ``head_top``) whose axis offsets are fitted too
+            (default: none — radii only).
+        max_offset: bound (metres) of every offset coordinate.
+        offset_lr: Adam step size of the offsets (metres).
+        offset_prior: pull of the offsets towards 0 (per square metre, against the IoU).
 
     ``forward(theta (D,), frame) -> info`` with ``iou_before``/``iou_after`` (mean over views),
-    ``energy_before``/``energy_after`` and the fitted ``scales`` per segment.
+    ``energy_before``/``energy_after``, the fitted ``scales`` per segment and, with ``offsets``,
+    the fitted ``offsets`` (metres, parent frame) per bone.
     """
 
     def __init__(self, body, rig, iterations: int = 60, lr: float = 0.05,
                  min_scale: float = 0.6, max_scale: float = 1.8, symmetric: bool = True,
                  stride: int = 1, tau: float = 0.15, prior_weight: float = 0.02,
-                 fg_samples: int = 400) -> None:
+                 fg_samples: int = 400, offsets=(), max_offset: float = 0.08,
+                 offset_lr: float = 0.005, offset_prior: float = 0.1) -> None:
         super().__init__()
         if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 0:
             raise ValueError(f"iterations: expected an int >= 0, got {iterations!r}")
@@ -78,6 +92,23 @@ class SilhouetteBodyFit(nn.Module):
         self.fg_samples = int(fg_samples)
         self.stride, self.tau = int(stride), float(tau)
         self.prior_weight = float(prior_weight)
+        if isinstance(offsets, str):
+            offsets = [offsets]
+        unknown = [b for b in offsets if b not in body.bone_names]
+        if unknown:
+            raise ValueError(f"offsets: unknown bones {unknown}; bones: {body.bone_names}")
+        for name, v in (("max_offset", max_offset), ("offset_lr", offset_lr)):
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0 or \
+                    not math.isfinite(v):
+                raise ValueError(f"{name}: expected a finite number > 0, got {v!r}")
+        if isinstance(offset_prior, bool) or not isinstance(offset_prior, (int, float)) or \
+                not offset_prior >= 0 or not math.isfinite(offset_prior):
+            raise ValueError(f"offset_prior: expected a finite number >= 0, got {offset_prior!r}")
+        self.offset_bones = list(dict.fromkeys(offsets))
+        self.max_offset, self.offset_lr = float(max_offset), float(offset_lr)
+        self.offset_prior = float(offset_prior)
+        self.register_buffer("offset_index", torch.tensor(
+            [body.bone_names.index(b) for b in self.offset_bones], dtype=torch.long))
         names = [_segment(n) if symmetric else n for n in body.bone_names]
         self.segments = list(dict.fromkeys(names))
         self.register_buffer("segment_index", torch.tensor([self.segments.index(n)
@@ -87,24 +118,37 @@ class SilhouetteBodyFit(nn.Module):
         if getattr(frame, "silhouettes", None) is None:
             raise ValueError("frame: the body fit needs silhouettes")
         body, rig = self.body, self.rig
-        dt = body.radii.dtype
+        dt, dev = body.radii.dtype, body.radii.device
         valid = None
         if getattr(frame, "view_dropped", None) is not None:
             valid = ~frame.view_dropped.bool()
         hard = prepare_silhouettes(frame.silhouettes, self.fg_samples, blur=0.0,
                                    view_valid=valid, dtype=dt)
         r0 = body.radii.detach().clone()
+        off0 = body.axis_offsets.detach().clone()
+        fit_off = len(self.offset_bones) > 0
         with torch.no_grad():
-            ends = body.endpoints(body.skeleton(theta.to(dt)[None], check_finite=False))
+            kin = body.skeleton(theta.to(dt)[None], check_finite=False)
+            ends0 = body.endpoints(kin)  # (1, B, 2, 3) with the body's current offsets
+            # where each fitted capsule moves per metre of offset: its parent joint's rotation
+            R = kin.rotations[0, body.parent_index[self.offset_index]]  # (F, 3, 3)
+        ends = ends0
 
-        def energy(radii, obs, smooth_):
+        def moved(delta):  # endpoints with ``delta (F, 3)`` added to the fitted offsets
+            shift = (R @ delta[:, :, None])[..., 0]  # (F, 3) world
+            full = torch.zeros(ends0.shape[1], 3, dtype=dt, device=dev).index_add(
+                0, self.offset_index.to(dev), shift)
+            return ends0 + full[None, :, None, :]
+
+        def energy(radii, obs, smooth_, ends=ends0):
             return silhouette_energy(ends, radii, rig, obs, smooth=smooth_)[0]
 
         st = self.stride
         target = frame.silhouettes[:, ::st, ::st].to(dt)  # (C, H', W')
-        vw = torch.ones(target.shape[0], dtype=dt) if valid is None else valid.to(dt)
+        vw = (torch.ones(target.shape[0], dtype=dt, device=dev) if valid is None
+              else valid.to(dev, dt))
 
-        def soft_iou(radii):
+        def soft_iou(radii, ends=ends):
             m = soft_capsule_silhouettes(ends, radii, rig, stride=st, tau=self.tau)[0]
             inter = (m * target).flatten(1).sum(-1)
             union = (m + target - m * target).flatten(1).sum(-1).clamp_min(1.0)
@@ -115,8 +159,10 @@ class SilhouetteBodyFit(nn.Module):
                                               torch.zeros_like(radii)))
             body.radii.copy_(radii)
 
-        def iou(radii):
+        def iou(radii, delta=None):
             set_radii(radii)
+            if delta is not None:
+                body.axis_offsets.copy_(off0.index_add(0, self.offset_index, delta))
             model = render_capsule_silhouettes(body, rig, theta.to(dt))
             v = silhouette_iou(model, frame.silhouettes)
             keep = torch.ones_like(v, dtype=torch.bool) if valid is None else valid.to(v.device)
@@ -125,32 +171,59 @@ class SilhouetteBodyFit(nn.Module):
         with torch.no_grad():
             e0 = float(energy(r0, hard, False))
         iou0 = iou(r0)
-        log_s = torch.zeros(len(self.segments), dtype=dt, requires_grad=True)
+        log_s = torch.zeros(len(self.segments), dtype=dt, device=dev, requires_grad=True)
+        delta = torch.zeros(len(self.offset_bones), 3, dtype=dt, device=dev,
+                            requires_grad=fit_off)
         lo, hi = math.log(self.min_scale), math.log(self.max_scale)
-        opt = torch.optim.Adam([log_s], lr=self.lr)
+        groups = [{"params": [log_s], "lr": self.lr}]
+        if fit_off:
+            groups.append({"params": [delta], "lr": self.offset_lr})
+        opt = torch.optim.Adam(groups)
+        # the bound applies to the fitted offset itself (the body's offset plus the change)
+        d_lo = -self.max_offset - off0[self.offset_index]
+        d_hi = self.max_offset - off0[self.offset_index]
+
+        def objective(ls, d):
+            e = moved(d) if fit_off else ends0
+            return soft_iou(r0 * ls[self.segment_index].exp(), e)
+
         with torch.no_grad():
-            start = float(soft_iou(r0))
-        best, best_v = log_s.detach().clone(), start
+            start = float(objective(log_s, delta))
+        best, best_d, best_v = log_s.detach().clone(), delta.detach().clone(), start
         for _ in range(self.iterations):
             opt.zero_grad()
             with torch.enable_grad():
-                v = soft_iou(r0 * log_s[self.segment_index].exp())
-                (self.prior_weight * log_s.square().mean() - v).backward()
+                v = objective(log_s, delta)
+                loss = self.prior_weight * log_s.square().mean() - v
+                if fit_off:
+                    total = off0[self.offset_index] + delta
+                    loss = loss + self.offset_prior * total.square().sum()
+                loss.backward()
             opt.step()
             with torch.no_grad():
                 log_s.clamp_(lo, hi)
-                v = float(soft_iou(r0 * log_s[self.segment_index].exp()))
+                if fit_off:
+                    delta.copy_(torch.minimum(torch.maximum(delta, d_lo), d_hi))
+                v = float(objective(log_s, delta))
             if v > best_v:
-                best, best_v = log_s.detach().clone(), v
+                best, best_d, best_v = log_s.detach().clone(), delta.detach().clone(), v
         radii = r0 * best[self.segment_index].exp()
         with torch.no_grad():
-            e1 = float(energy(radii, hard, False))
-        iou1 = iou(radii.detach())  # leaves the fitted radii in the body
-        return {"iou_before": iou0, "iou_after": iou1, "energy_before": e0,
+            e1 = float(energy(radii, hard, False, moved(best_d) if fit_off else ends0))
+        # leaves the fitted radii (and offsets) in the body
+        iou1 = iou(radii.detach(), best_d if fit_off else None)
+        info = {"iou_before": iou0, "iou_after": iou1, "energy_before": e0,
                 "energy_after": e1,
                 "scales": {n: round(float(math.exp(float(best[i]))), 4)
                            for i, n in enumerate(self.segments)}}
+        if fit_off:
+            info["offsets"] = {b: [round(float(x), 4) for x in body.axis_offsets[int(k)]]
+                               for b, k in zip(self.offset_bones, self.offset_index)}
+        return info
 
     def extra_repr(self) -> str:
-        return (f"iterations={self.iterations}, scale=[{self.min_scale}, {self.max_scale}], "
-                f"segments={len(self.segments)}")
+        out = (f"iterations={self.iterations}, scale=[{self.min_scale}, {self.max_scale}], "
+               f"segments={len(self.segments)}")
+        if self.offset_bones:
+            out += f", offsets={self.offset_bones}, max_offset={self.max_offset}"
+        return out

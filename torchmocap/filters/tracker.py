@@ -147,7 +147,8 @@ class Tracker(nn.Module):
         clamp_estimate: clamp each estimate into the joint limits.
         body_fit: optional callable ``(theta0, frame0) -> info`` run at :meth:`init` after the
             first pose is known, e.g. :class:`~torchmocap.filters.body_fit.SilhouetteBodyFit`
-            (fits the capsule radii to the first frame; its body is saved in checkpoints).
+            (fits the capsule radii — and axis offsets — to the first frame; its body is saved in
+            checkpoints).
         refit_passes: with ``refine_first_frame`` and a ``body_fit``: coarse-to-fine passes
             after the first fit — the first frame's pose is refined again with the fitted
             body (the proposal's spread scaled by ``refit_scale``; the new pose is kept when
@@ -471,7 +472,7 @@ class Tracker(nn.Module):
                    else self.manifold.sensor_to_bone.detach().clone(),
                    "body": None if getattr(self.body_fit, "body", None) is None else
                    {k: v.detach().clone() for k, v in self.body_fit.body.state_dict().items()
-                    if k in ("radii", "end_shrink")}}
+                    if k in ("radii", "end_shrink", "axis_offsets")}}
         tmp = f"{path}.tmp"
         torch.save(payload, tmp)
         os.replace(tmp, path)
