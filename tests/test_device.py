@@ -34,8 +34,12 @@ PRESETS = [
     ("hauberg_silhouette", "stereo", ["tracker.num_particles=12"]),
     ("hauberg_depth", "stereo", ["tracker.num_particles=12"]),
     ("kjs", "monocular", ["tracker.num_particles=8"]),
+    ("p_prior_refined_fit", "studio", ["tracker.num_particles=12", "tracker.inference.layers=2",
+                                       "tracker.inference.refine.iterations=2",
+                                       "tracker.body_fit.iterations=3"]),
 ]
-IDS = ["p", "g", "gs", "rs", "p_sir", "ls", "hauberg_silhouette", "hauberg_depth", "kjs"]
+IDS = ["p", "g", "gs", "rs", "p_sir", "ls", "hauberg_silhouette", "hauberg_depth", "kjs",
+       "p_fit"]
 #: (file, function) allowed to copy to the host: the mixture tracker's greedy assignment of
 #: modes is a Python loop over a K x K0 (8 x 8) distance matrix — one copy instead of 64 syncs
 #: the mixture's greedy matching loop; the ESS β solve's numpy path, taken only for CPU tensors
