@@ -68,3 +68,45 @@ def test_the_report_names_every_run_of_its_experiment_config(sweep, load_script)
     assert list(spec["trackers"]) == str(cfg["tracker"]).split(",")
     assert spec["particles"] == [int(n) for n in str(cfg["tracker.num_particles"]).split(",")]
     assert rep.SEEDS == [int(s) for s in str(cfg["seed"]).split(",")]
+
+
+def _write_frame(d: Path, views: list[float], offset=None) -> None:
+    d.mkdir(parents=True)
+    m = {"silhouette_iou": {"per_view": views, "mean": sum(views) / len(views)},
+         "body_fit": {}}
+    if offset is not None:
+        m["body_fit"]["offsets"] = {"head_top": offset}
+    (d / "metrics.json").write_text(json.dumps(m))
+
+
+def test_bodytrack_table_per_view_and_seed_spread(tmp_path, load_script):
+    rep = load_script("hauberg2011/report.py")
+    runs = tmp_path / "runs"
+    hull = [[0.8, 0.7, 0.7, 0.6], [0.7, 0.7, 0.6, 0.6], [0.9, 0.8, 0.7, 0.6]]
+    for s, v in enumerate(hull):
+        _write_frame(runs / "real_frame_hull" / f"seed{s}", v, offset=[0.01 * s, 0.0, 0.08])
+    _write_frame(runs / "real_frame" / "seed0", [0.6, 0.6, 0.5, 0.5])
+    out = tmp_path / "out"
+    assert rep.main(["bodytrack", "--runs", str(runs), "--out", str(out)]) == 0
+    md = (out / "bodytrack.md").read_text()
+    means = [sum(v) / 4 for v in hull]  # 0.7, 0.65, 0.75
+    row = next(line for line in md.splitlines() if "(`real_frame_hull`)" in line)
+    assert "| 0.800 | 0.733 | 0.667 | 0.600 |" in row  # per view, over the seeds
+    assert f"| 0.700 ± {statistics.stdev(means):.3f} | 0.650 – 0.750 |" in row
+    assert "| (1.0, 0.0, 8.0) |" in row  # mean head offset in cm
+    assert "| 0.550 ± 0.000 |" in md and "| – |" in md  # real_frame: one seed, no offset
+    assert "Missing runs (5)" in md and "real_frame_hull_centred/seed0" in md
+    assert (out / "bodytrack.png").stat().st_size > 1000
+    assert not list(out.glob("*.tmp*"))
+    assert rep.main(["bodytrack", "--runs", str(tmp_path / "none"), "--out", str(out)]) == 2
+
+
+def test_bodytrack_report_reads_its_experiment_config(load_script):
+    import yaml
+
+    rep = load_script("hauberg2011/report.py")
+    text = (ROOT / "conf" / "experiment" / "hauberg2011" / "bodytrack.yaml").read_text()
+    cfg = yaml.safe_load(text)["hydra"]["sweeper"]["params"]
+    assert set(str(cfg["tracker"]).split(",")) < set(rep.BODYTRACK)
+    assert "tracker.name=real_frame_hull_centred" in text  # the ablation's command
+    assert rep.SEEDS == [int(s) for s in str(cfg["seed"]).split(",")]

@@ -100,8 +100,18 @@ def test_tracker_refit_passes_alternate_pose_and_body():
     (p,) = info["refit"]
     assert p["energy_after"] < p["energy_before"] or not p["kept"]
     assert p["body_fit"]["iou_after"] >= info["body_fit"]["iou_after"] - 0.01
+    # the body was fitted in place: each pass scales the radii the previous one left
     ratio = rt.body.radii / CapsuleBody(sk).float().radii
-    assert float(ratio.median()) > 1.1  # the body was fitted thicker, in place
+    fit = tr.body_fit
+    s1, s2 = info["body_fit"]["scales"], p["body_fit"]["scales"]
+    expected = torch.tensor([s1[fit.segments[i]] * s2[fit.segments[i]]
+                             for i in fit.segment_index.tolist()])
+    assert ratio == pytest.approx(expected, rel=2e-3)
+    assert not torch.allclose(ratio, torch.ones_like(ratio))
+    # the preset frees the head capsule from the neck's axis: the offset is in the body
+    off = p["body_fit"]["offsets"]["head_top"]
+    assert rt.body.axis_offsets[rt.body.bone_names.index("head_top")].tolist() == pytest.approx(
+        off, abs=1e-4)
     # metrics.json reports the fit: IoU before the first fit, after the last pass, JSON-clean
     import json
 
