@@ -119,6 +119,11 @@ def test_tracker_refit_passes_alternate_pose_and_body():
 
     m = json.loads(json.dumps(_diagnostics(state.infos)))["body_fit"]
     assert m["passes"] == 2
+    # timings: the fits' own seconds add up to the reported total, and the first frame's
+    # seconds cover the refinement, the fits and the refit's inference
+    fit_s = info["body_fit"]["seconds"] + p["body_fit"]["seconds"]
+    assert m["seconds"] == pytest.approx(fit_s)
+    assert info["seconds"] > fit_s + p["seconds"] - p["body_fit"]["seconds"] > 0
     assert m["iou_before"] == pytest.approx(info["body_fit"]["iou_before"])
     assert m["iou_after"] == pytest.approx(p["body_fit"]["iou_after"])
     assert m["iou_after"] > m["iou_before"]

@@ -478,6 +478,8 @@ def _diagnostics(infos: list) -> dict:
             "energy_after": _number(fits[-1].get("energy_after")),
             "scales": {str(k): _number(v) for k, v in dict(fits[-1].get("scales", {})).items()},
             "passes": len(fits)}
+        if all(f.get("seconds") is not None for f in fits):  # the fits alone
+            out["body_fit"]["seconds"] = _number(sum(f["seconds"] for f in fits))
         if isinstance(fits[-1].get("offsets"), dict):  # capsules moved off their bones (m)
             out["body_fit"]["offsets"] = {str(k): [_number(x) for x in v]
                                           for k, v in fits[-1]["offsets"].items()}

@@ -330,6 +330,7 @@ class Tracker(nn.Module):
                                                                else int(seed))
         info: dict[str, Any] = {"frame": 0, "initial": True}
         particles = log_w = carry = None
+        t_init = time.perf_counter()
         if self.refine_first_frame:
             if frame0 is None:
                 raise ValueError("frame0: required to refine the first frame")
@@ -340,10 +341,14 @@ class Tracker(nn.Module):
             info.update(seconds=time.perf_counter() - t0, energy=terms)
             theta0, particles, log_w, carry = est, res.particles, res.log_weights, res.carry
         if self.body_fit is not None and frame0 is not None:
+            t0 = time.perf_counter()
             info["body_fit"] = self.body_fit(theta0, frame0)
+            info["body_fit"]["seconds"] = time.perf_counter() - t0
             if self.refine_first_frame and self.refit_passes:
                 theta0, particles, log_w, carry = self._refit(theta0, frame0, g, info,
                                                               (particles, log_w, carry))
+            # the whole first frame: the refinement, the body fit and the refit passes
+            info["seconds"] = time.perf_counter() - t_init
         if self.manifold is not None and frame0 is not None and frame0.imu is not None:
             self.manifold.calibrate(theta0, self._sensors(frame0))
         return TrackState(history=theta0[None].clone(), frame=0, generator_state=g.get_state(),
@@ -365,7 +370,9 @@ class Tracker(nn.Module):
             better = bool(v[1] < v[0])
             if better:
                 theta0, kept = est, (res.particles, res.log_weights, res.carry)
+            t1 = time.perf_counter()
             fit = self.body_fit(theta0, frame0)
+            fit["seconds"] = time.perf_counter() - t1
             passes.append({"energy_before": float(v[0]), "energy_after": float(v[1]),
                            "kept": better, "seconds": time.perf_counter() - t0,
                            "body_fit": fit})
