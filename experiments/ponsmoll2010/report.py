@@ -315,10 +315,14 @@ def long() -> str:
 
 
 #: the default tracker with the subject's capsules fitted to the first frame (radii and the
-#: head capsule's offset off the neck's axis), and with the head offset alone (radii kept)
+#: head capsule's offset off the neck's axis), to the masks intersected with their visual
+#: hull's reprojection, and with the head offset alone (radii kept; outdoors only)
 BODY_FIT = [("p_prior_refined", "default tracker (anthropometric capsules)"),
             ("p_prior_refined_fit", "+ radii and head offset fitted (`p_prior_refined_fit`)"),
+            ("p_prior_refined_fit_hull", "+ fitted to the hull-filtered masks "
+                                         "(`body_fit.hull_filter=true`)"),
             ("p_prior_refined_head", "+ head offset fitted, radii kept")]
+STUDIO_FIT = BODY_FIT[:3]
 STUDIO = [("demo", "demo walk, CMU 131_01", [0, 1, 2]), ("jog", "HDM05 bd jog", [0]),
           ("sneak", "HDM05 bd sneak", [0]), ("fwalk", "CMU21 female walk", [0])]
 
@@ -361,11 +365,11 @@ def body_fit() -> str:
         for v in totals.values()) + " |")
     lines += ["", "Studio, the default data (four views of the skinned body, ten IMUs; "
               "`runs/studio`, every frame of each clip):", "",
-              "| clip (seeds) | " + " | ".join(label for _, label in BODY_FIT[:2]) + " |",
-              "|---|" + "---|" * 2]
+              "| clip (seeds) | " + " | ".join(label for _, label in STUDIO_FIT) + " |",
+              "|---|" + "---|" * len(STUDIO_FIT)]
     for d, label, seeds in STUDIO:
         cells = []
-        for m, _ in BODY_FIT[:2]:
+        for m, _ in STUDIO_FIT:
             runs = runs_of("studio", d, m, seeds=seeds)
             cells.append(" / ".join(f"{x['orientation_error_deg']['mean']:.1f}° "
                                     f"({x['mpjpe_root_relative_mm']['mean']:.1f} mm)"

@@ -74,6 +74,73 @@ def test_recovers_a_head_in_front_of_the_neck():
         SilhouetteBodyFit(plain, rig, offsets=["head_top"], max_offset=0.0)
 
 
+def _disc(mask: torch.Tensor, centre, radius: float) -> None:
+    """Paint a filled disc of ``radius`` pixels at ``centre (u, v)`` into ``mask (H, W)``."""
+    H, W = mask.shape
+    v, u = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    mask |= (u - float(centre[0])) ** 2 + (v - float(centre[1])) ** 2 <= radius**2
+
+
+def test_hull_filter_keeps_the_foreground_all_views_agree_on():
+    """Clutter blobs in two of four views — one far from the body, one beside the left forearm
+    (not consistent in 3D): ``hull_filter`` removes the far ones completely and most of the
+    near ones, never adds foreground, and the fit reports what it saw."""
+    sk = human31()
+    rig = make_ring_rig(4).float()
+    th = sk.zero_pose()
+    th[sk.dof_index("l_shoulder_abd")] = 1.2
+    th[sk.dof_index("pelvis_rz")] = 0.4
+    truth = CapsuleBody(sk).float()
+    clean = capsule_masks(truth, rig, th)
+    masks = clean.clone()
+    pos = sk(th[None].float()).positions[0]
+    pix, _, _ = rig.project(pos[[sk.joint_index("l_wrist")]])  # (C, 1, 2)
+    far = torch.zeros_like(masks)
+    for c in (0, 1):
+        _disc(masks[c], pix[c, 0] + torch.tensor([10.0, 0.0]), 11.0)
+        _disc(far[c], torch.tensor([20.0 + 30 * c, 200.0]), 15.0)  # a corner of the image
+    assert not bool((far & clean).any())
+    masks |= far
+    frame = Frame(index=0, time=0.0, silhouettes=masks)
+
+    def iou(a, b):
+        return float((a & b).sum() / (a | b).sum())
+
+    body = CapsuleBody(sk).float()
+    fit = SilhouetteBodyFit(body, rig, iterations=20, stride=2, hull_filter=True)
+    ends = truth.endpoints(sk(th[None].float()))
+    filtered, hull = fit._hull_filtered(masks, None, ends, truth.radii)
+    assert hull["applied"] and hull["views"] == 4
+    assert not bool((filtered & ~masks).any())  # only removes foreground
+    assert not bool((filtered & far).any())  # the far blobs are gone
+    assert iou(filtered, clean) > 0.93 > 0.86 > iou(masks, clean)
+    assert iou(filtered[2:], clean[2:]) > 0.97  # the views without clutter barely touched
+    info = fit(th, frame)
+    h = info["hull"]
+    assert h["applied"] and h["kept"] == pytest.approx(float(filtered.sum() / masks.sum()),
+                                                       abs=1e-3)
+    assert h["iou_before"] > info["iou_before"]  # the filtered masks fit the body better
+    import json
+
+    from torchmocap.cli.track import _diagnostics
+
+    m = json.loads(json.dumps(_diagnostics([{"frame": 0, "body_fit": info}])))["body_fit"]
+    assert m["hull"] == pytest.approx(h)  # metrics.json reports what the fit saw
+    assert "hull_filter=True" in repr(fit)
+    plain = SilhouetteBodyFit(CapsuleBody(sk).float(), rig, iterations=5, stride=2)
+    assert "hull" not in plain(th, frame)
+    # fewer than two valid views: the masks are used as given, and the info says so
+    valid = torch.tensor([True, False, False, False])
+    same, h1 = fit._hull_filtered(masks, valid, ends, truth.radii)
+    assert not h1["applied"] and "1 valid view" in h1["reason"] and same is masks
+    with pytest.raises(ValueError, match="hull_voxel"):
+        SilhouetteBodyFit(body, rig, hull_filter=True, hull_voxel=0.0)
+    with pytest.raises(ValueError, match="hull_margin"):
+        SilhouetteBodyFit(body, rig, hull_filter=True, hull_margin=-0.1)
+    with pytest.raises(ValueError, match="hull_filter"):
+        SilhouetteBodyFit(body, rig, hull_filter="yes")
+
+
 def test_tracker_refit_passes_alternate_pose_and_body():
     """Coarse to fine on the first frame (``refit_passes``): pose refined with the fitted body,
     kept only when its energy is lower, body refitted; a real_frame_hull preset in small."""

@@ -483,6 +483,9 @@ def _diagnostics(infos: list) -> dict:
         if isinstance(fits[-1].get("offsets"), dict):  # capsules moved off their bones (m)
             out["body_fit"]["offsets"] = {str(k): [_number(x) for x in v]
                                           for k, v in fits[-1]["offsets"].items()}
+        if isinstance(fits[-1].get("hull"), dict):  # the masks the fit saw (hull-filtered)
+            out["body_fit"]["hull"] = {str(k): (_number(v) if isinstance(v, float) else v)
+                                       for k, v in fits[-1]["hull"].items()}
     return out
 
 

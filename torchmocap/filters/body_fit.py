@@ -19,6 +19,16 @@ axis offset in the parent joint's frame, :class:`~torchmocap.body.CapsuleBody`
 (the bundled mesh's head spans 17 cm in front of it and 5 cm behind), the chest and belly in
 front of the spine; a capsule centred on the bone makes the silhouette term tilt the neck forward
 to cover the face.
+
+With ``hull_filter`` the fit sees only the foreground that all views agree on: the masks are
+intersected with the reprojection of their own visual hull (carved from every valid view,
+:func:`~torchmocap.cameras.visual_hull`, around the body at the pose). Clutter, reflections and
+other false-positive blobs that one view sees and the others do not are removed before the fit;
+corrupted masks otherwise pull the radii towards the corruptions (on the synthetic outdoor
+scenario the filtered masks overlap the clean ones with IoU 0.52–0.84 per view instead of
+0.41–0.67). What is consistent in 3D stays (a shadow on the floor), holes in one view carve the
+hull and so are lost in every view; the reported ``iou_before``/``iou_after`` stay those with the
+masks as given.
 """
 
 from __future__ import annotations
@@ -28,6 +38,7 @@ import math
 import torch
 from torch import nn
 
+from torchmocap.cameras.hull import visual_hull
 from torchmocap.likelihoods.silhouette import (
     prepare_silhouettes,
     render_capsule_silhouettes,
@@ -67,17 +78,26 @@ class SilhouetteBodyFit(nn.Module):
         max_offset: bound (metres) of every offset coordinate.
         offset_lr: Adam step size of the offsets (metres).
         offset_prior: pull of the offsets towards 0 (per square metre, against the IoU).
+        hull_filter: fit to the masks intersected with the reprojection of their visual hull
+            (needs at least two valid views; with fewer the masks are used as given).
+        hull_voxel: voxel edge of that hull (metres).
+        hull_margin: the hull is carved in the box around the capsules at the pose, padded by
+            this (metres) plus the largest radius.
 
     ``forward(theta (D,), frame) -> info`` with ``iou_before``/``iou_after`` (mean over views),
     ``energy_before``/``energy_after``, the fitted ``scales`` per segment and, with ``offsets``,
-    the fitted ``offsets`` (metres, parent frame) per bone.
+    the fitted ``offsets`` (metres, parent frame) per bone; with ``hull_filter``, ``hull``:
+    whether it was applied, the views carved, the fraction of the foreground kept and the IoUs
+    with the filtered masks.
     """
 
     def __init__(self, body, rig, iterations: int = 60, lr: float = 0.05,
                  min_scale: float = 0.6, max_scale: float = 1.8, symmetric: bool = True,
                  stride: int = 1, tau: float = 0.15, prior_weight: float = 0.02,
                  fg_samples: int = 400, offsets=(), max_offset: float = 0.08,
-                 offset_lr: float = 0.005, offset_prior: float = 0.1) -> None:
+                 offset_lr: float = 0.005, offset_prior: float = 0.1,
+                 hull_filter: bool = False, hull_voxel: float = 0.02,
+                 hull_margin: float = 0.3) -> None:
         super().__init__()
         if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 0:
             raise ValueError(f"iterations: expected an int >= 0, got {iterations!r}")
@@ -104,6 +124,16 @@ class SilhouetteBodyFit(nn.Module):
         if isinstance(offset_prior, bool) or not isinstance(offset_prior, (int, float)) or \
                 not offset_prior >= 0 or not math.isfinite(offset_prior):
             raise ValueError(f"offset_prior: expected a finite number >= 0, got {offset_prior!r}")
+        if not isinstance(hull_filter, bool):
+            raise ValueError(f"hull_filter: expected a bool, got {hull_filter!r}")
+        for name, v, positive in (("hull_voxel", hull_voxel, True),
+                                  ("hull_margin", hull_margin, False)):
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
+                    or v < 0 or (positive and v == 0):
+                raise ValueError(f"{name}: expected a finite number {'> 0' if positive else '>= 0'}"
+                                 f", got {v!r}")
+        self.hull_filter = hull_filter
+        self.hull_voxel, self.hull_margin = float(hull_voxel), float(hull_margin)
         self.offset_bones = list(dict.fromkeys(offsets))
         self.max_offset, self.offset_lr = float(max_offset), float(offset_lr)
         self.offset_prior = float(offset_prior)
@@ -122,8 +152,6 @@ class SilhouetteBodyFit(nn.Module):
         valid = None
         if getattr(frame, "view_dropped", None) is not None:
             valid = ~frame.view_dropped.bool()
-        hard = prepare_silhouettes(frame.silhouettes, self.fg_samples, blur=0.0,
-                                   view_valid=valid, dtype=dt)
         r0 = body.radii.detach().clone()
         off0 = body.axis_offsets.detach().clone()
         fit_off = len(self.offset_bones) > 0
@@ -133,6 +161,10 @@ class SilhouetteBodyFit(nn.Module):
             # where each fitted capsule moves per metre of offset: its parent joint's rotation
             R = kin.rotations[0, body.parent_index[self.offset_index]]  # (F, 3, 3)
         ends = ends0
+        masks, hull_info = frame.silhouettes, None
+        if self.hull_filter:
+            masks, hull_info = self._hull_filtered(masks, valid, ends0, r0)
+        hard = prepare_silhouettes(masks, self.fg_samples, blur=0.0, view_valid=valid, dtype=dt)
 
         def moved(delta):  # endpoints with ``delta (F, 3)`` added to the fitted offsets
             shift = (R @ delta[:, :, None])[..., 0]  # (F, 3) world
@@ -144,7 +176,7 @@ class SilhouetteBodyFit(nn.Module):
             return silhouette_energy(ends, radii, rig, obs, smooth=smooth_)[0]
 
         st = self.stride
-        target = frame.silhouettes[:, ::st, ::st].to(dt)  # (C, H', W')
+        target = masks[:, ::st, ::st].to(dt)  # (C, H', W')
         vw = (torch.ones(target.shape[0], dtype=dt, device=dev) if valid is None
               else valid.to(dev, dt))
 
@@ -160,17 +192,23 @@ class SilhouetteBodyFit(nn.Module):
             body.radii.copy_(radii)
 
         def iou(radii, delta=None):
+            """IoU with the masks as given (and, with the hull filter, the filtered ones)."""
             set_radii(radii)
             if delta is not None:
                 body.axis_offsets.copy_(off0.index_add(0, self.offset_index, delta))
             model = render_capsule_silhouettes(body, rig, theta.to(dt))
-            v = silhouette_iou(model, frame.silhouettes)
-            keep = torch.ones_like(v, dtype=torch.bool) if valid is None else valid.to(v.device)
-            return float(v[keep].mean()) if bool(keep.any()) else float("nan")
+            out = []
+            for m in ([frame.silhouettes] if hull_info is None or not hull_info["applied"]
+                      else [frame.silhouettes, masks]):
+                v = silhouette_iou(model, m)
+                keep = (torch.ones_like(v, dtype=torch.bool) if valid is None
+                        else valid.to(v.device))
+                out.append(float(v[keep].mean()) if bool(keep.any()) else float("nan"))
+            return out
 
         with torch.no_grad():
             e0 = float(energy(r0, hard, False))
-        iou0 = iou(r0)
+        iou0, *iou0_f = iou(r0)
         log_s = torch.zeros(len(self.segments), dtype=dt, device=dev, requires_grad=True)
         delta = torch.zeros(len(self.offset_bones), 3, dtype=dt, device=dev,
                             requires_grad=fit_off)
@@ -211,19 +249,45 @@ class SilhouetteBodyFit(nn.Module):
         with torch.no_grad():
             e1 = float(energy(radii, hard, False, moved(best_d) if fit_off else ends0))
         # leaves the fitted radii (and offsets) in the body
-        iou1 = iou(radii.detach(), best_d if fit_off else None)
+        iou1, *iou1_f = iou(radii.detach(), best_d if fit_off else None)
         info = {"iou_before": iou0, "iou_after": iou1, "energy_before": e0,
                 "energy_after": e1,
                 "scales": {n: round(float(math.exp(float(best[i]))), 4)
                            for i, n in enumerate(self.segments)}}
+        if hull_info is not None:
+            if iou0_f:
+                hull_info.update(iou_before=iou0_f[0], iou_after=iou1_f[0])
+            info["hull"] = hull_info
         if fit_off:
             info["offsets"] = {b: [round(float(x), 4) for x in body.axis_offsets[int(k)]]
                                for b, k in zip(self.offset_bones, self.offset_index)}
         return info
+
+    def _hull_filtered(self, masks: torch.Tensor, valid: torch.Tensor | None,
+                       ends: torch.Tensor, radii: torch.Tensor) -> tuple[torch.Tensor, dict]:
+        """``masks (C, H, W)`` intersected with the reprojection of their visual hull, carved
+        from every valid view in the box around the capsules ``ends (1, B, 2, 3)``; and what
+        was done."""
+        C = masks.shape[0]
+        ok = (torch.ones(C, dtype=torch.bool, device=masks.device) if valid is None
+              else valid.to(masks.device))
+        n = int(ok.sum())
+        if n < 2:
+            return masks, {"applied": False, "reason": f"{n} valid view(s); the hull needs 2"}
+        pts = ends.detach().reshape(-1, 3).double().cpu()
+        pad = self.hull_margin + float(radii.max())
+        bounds = torch.stack([pts.min(0).values - pad, pts.max(0).values + pad], 1)
+        fg = masks > 0
+        hull = visual_hull(self.rig, fg, bounds, self.hull_voxel, min_views=n)
+        out = fg & hull.silhouettes(self.rig).to(fg.device)
+        kept = float(out[ok].sum()) / max(float(fg[ok].sum()), 1.0)
+        return out.to(masks.dtype), {"applied": True, "views": n, "kept": round(kept, 4)}
 
     def extra_repr(self) -> str:
         out = (f"iterations={self.iterations}, scale=[{self.min_scale}, {self.max_scale}], "
                f"segments={len(self.segments)}")
         if self.offset_bones:
             out += f", offsets={self.offset_bones}, max_offset={self.max_offset}"
+        if self.hull_filter:
+            out += f", hull_filter=True, hull_voxel={self.hull_voxel}"
         return out
