@@ -50,6 +50,14 @@ def test_every_experiment_config_runs_for_three_frames(name, tmp_path, shared_da
     narrow = [f"{k}={str(v).split(',')[0]}" for k, v in params.items()
               if k in ("seed", "data/clip")]
     narrow += _vendored_clip(str(params.get("data/clip", "")).split(",")[0], shared_data)
+    if str(params.get("data", "")) == "bodytrack":  # the real frame: no clip, one frame
+        root = shared_data / "multiview" / "bodytrack_sequenceB_1"
+        data = ["data=bodytrack", f"data.path={root}", "data.scale=0.5",
+                "++tracker.inference.rounds=1"]
+        frames = 1
+    else:
+        data = ["data.clip.frames=3", "++data.scenario_overrides.image_size=[80,60]"]
+        frames = 3
     sweep = tmp_path / "sweep"
     env = dict(os.environ, OMP_NUM_THREADS="1")
     trackers = str(params.get("tracker", "p")).split(",")
@@ -69,9 +77,7 @@ def test_every_experiment_config_runs_for_three_frames(name, tmp_path, shared_da
     for budget, ts in groups.items():
         budget = tuple(f"++{b}" for b in budget)
         r = subprocess.run([EXE, "-m", f"+experiment={name}", *narrow, f"tracker={','.join(ts)}",
-                            "data.clip.frames=3", *budget,
-                            "++data.scenario_overrides.image_size=[80,60]",
-                            f"sequence_cache={tmp_path / 'cache'}",
+                            *data, *budget, f"sequence_cache={tmp_path / 'cache'}",
                             f"hydra.sweep.dir={sweep}"],
                            capture_output=True, text=True, timeout=900, env=env, cwd=ROOT)
         assert r.returncode == 0, (ts, r.stderr[-3000:])
@@ -81,6 +87,13 @@ def test_every_experiment_config_runs_for_three_frames(name, tmp_path, shared_da
              if "tracker.num_particles=12" in b}
     for m in metrics:
         m = json.loads(m.read_text())
-        assert m["frames"] == 3
+        assert m["frames"] == frames
         if m["tracker"] in small:  # the budget reached every job of its sweep
             assert m["num_particles"] == 12, m["tracker"]
+    if frames == 1:  # the real frame's report reads these runs
+        r = subprocess.run([sys.executable, str(ROOT / "experiments" / "hauberg2011" / "report.py"),
+                            "bodytrack", "--runs", str(sweep), "--out", str(tmp_path / "out")],
+                           capture_output=True, text=True, timeout=300, env=env, cwd=ROOT)
+        assert r.returncode == 0, r.stderr[-3000:]
+        md = (tmp_path / "out" / "bodytrack.md").read_text()
+        assert all(f"(`{t}`)" in md for t in trackers)
