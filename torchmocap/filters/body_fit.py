@@ -84,7 +84,11 @@ class SilhouetteBodyFit(nn.Module):
         hull_margin: the hull is carved in the box around the capsules at the pose, padded by
             this (metres) plus the largest radius.
 
+    A fit that lowers the hard IoU of the masks it fitted (the soft IoU's optimum need not be
+    the hard IoU's) is undone: the body is left as it was and ``kept`` is ``False``.
+
     ``forward(theta (D,), frame) -> info`` with ``iou_before``/``iou_after`` (mean over views),
+    ``kept``,
     ``energy_before``/``energy_after``, the fitted ``scales`` per segment and, with ``offsets``,
     the fitted ``offsets`` (metres, parent frame) per bone; with ``hull_filter``, ``hull``:
     whether it was applied, the views carved, the fraction of the foreground kept and the IoUs
@@ -250,7 +254,13 @@ class SilhouetteBodyFit(nn.Module):
             e1 = float(energy(radii, hard, False, moved(best_d) if fit_off else ends0))
         # leaves the fitted radii (and offsets) in the body
         iou1, *iou1_f = iou(radii.detach(), best_d if fit_off else None)
-        info = {"iou_before": iou0, "iou_after": iou1, "energy_before": e0,
+        # the soft objective's optimum is not the hard IoU's: a fit that lowers the hard IoU
+        # of the masks it fitted is undone (the body is left as it was)
+        kept = (iou1_f or [iou1])[0] >= (iou0_f or [iou0])[0]
+        if not kept:
+            best, best_d, e1 = torch.zeros_like(best), torch.zeros_like(best_d), e0
+            iou1, *iou1_f = iou(r0, best_d if fit_off else None)
+        info = {"iou_before": iou0, "iou_after": iou1, "kept": kept, "energy_before": e0,
                 "energy_after": e1,
                 "scales": {n: round(float(math.exp(float(best[i]))), 4)
                            for i, n in enumerate(self.segments)}}
