@@ -258,8 +258,9 @@ class SilhouetteBodyFit(nn.Module):
         # of the masks it fitted is undone (the body is left as it was)
         kept = (iou1_f or [iou1])[0] >= (iou0_f or [iou0])[0]
         if not kept:
-            best, best_d, e1 = torch.zeros_like(best), torch.zeros_like(best_d), e0
-            iou1, *iou1_f = iou(r0, best_d if fit_off else None)
+            set_radii(r0)
+            body.axis_offsets.copy_(off0)
+            best, e1, iou1, iou1_f = torch.zeros_like(best), e0, iou0, iou0_f
         info = {"iou_before": iou0, "iou_after": iou1, "kept": kept, "energy_before": e0,
                 "energy_after": e1,
                 "scales": {n: round(float(math.exp(float(best[i]))), 4)
@@ -291,7 +292,8 @@ class SilhouetteBodyFit(nn.Module):
         hull = visual_hull(self.rig, fg, bounds, self.hull_voxel, min_views=n)
         out = fg & hull.silhouettes(self.rig).to(fg.device)
         kept = float(out[ok].sum()) / max(float(fg[ok].sum()), 1.0)
-        return out.to(masks.dtype), {"applied": True, "views": n, "kept": round(kept, 4)}
+        return out.to(masks.dtype), {"applied": True, "views": n,
+                                     "foreground_kept": round(kept, 4)}
 
     def extra_repr(self) -> str:
         out = (f"iterations={self.iterations}, scale=[{self.min_scale}, {self.max_scale}], "
