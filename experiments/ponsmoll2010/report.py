@@ -384,6 +384,13 @@ FIGURES = {"fig8": fig8, "fig9a": fig9a, "fig10": fig10, "control": control,
 RUN_DIRS = {"body_fit": "fig8"}
 
 
+def _write_atomic(path: Path, text: str) -> None:
+    """Write ``text`` beside ``path`` and move it into place: never a half-written table."""
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("figure", choices=[*FIGURES, "all"])
@@ -395,7 +402,7 @@ def main() -> None:
             print(f"{name}: no runs, skipped", file=sys.stderr)
             continue
         table = FIGURES[name]()
-        (RESULTS / f"{name}.md").write_text(table + "\n")
+        _write_atomic(RESULTS / f"{name}.md", table + "\n")
         print(table + "\n")
 
 
