@@ -90,6 +90,13 @@ def test_every_experiment_config_runs_for_three_frames(name, tmp_path, shared_da
         assert m["frames"] == frames
         if m["tracker"] in small:  # the budget reached every job of its sweep
             assert m["num_particles"] == 12, m["tracker"]
+    if name.startswith("smoothing/"):  # the smoothing report reads these runs
+        r = subprocess.run([sys.executable, str(ROOT / "experiments" / "smoothing" / "report.py"),
+                            "--runs", str(sweep), "--out", str(tmp_path / "out")],
+                           capture_output=True, text=True, timeout=300, env=env, cwd=ROOT)
+        assert r.returncode == 0, r.stderr[-3000:]
+        md = (tmp_path / "out" / "kalman.md").read_text()
+        assert all(f"`{tracker_config(t).name}` | mean |" in md for t in trackers), md
     if frames == 1:  # the real frame's report reads these runs
         r = subprocess.run([sys.executable, str(ROOT / "experiments" / "hauberg2011" / "report.py"),
                             "bodytrack", "--runs", str(sweep), "--out", str(tmp_path / "out")],

@@ -179,6 +179,27 @@ def test_smoothed_run_reports_the_filtered_errors_beside(tmp_path):
     assert np.mean(best) == pytest.approx(hyp["mpjpe_best_mm"]["mean"], rel=1e-3)
 
 
+def test_kalman_smoothed_run_reports_both_and_saves_the_filtered_track(tmp_path):
+    """Any tracker with the Kalman smoother: metrics.json's errors are the smoothed track's
+    (recomputed here from track.npz), "filtered" the tracker's own, and the fitted noise."""
+    import numpy as np
+
+    cfg = _compose(["tracker=p", "+smoother@tracker.smoother=kalman", "data.clip.frames=6",
+                    "tracker.num_particles=24", "tracker.inference.layers=2",
+                    "progress=false", "overlays=0", "glb.enabled=false"])
+    m = run(cfg, tmp_path)
+    z = np.load(tmp_path / "track.npz")
+    assert z["theta_filtered"].shape == z["theta"].shape == (6, 31)
+    assert np.array_equal(z["theta"][0], z["theta_filtered"][0])
+    assert not np.array_equal(z["theta"], z["theta_filtered"])
+    assert np.mean(z["mpjpe_mm"]) == pytest.approx(m["mpjpe_mm"]["mean"], rel=1e-5)
+    sm = m["smoother"]
+    assert sm["name"] == "kalman" and sm["changed_frames"] == 5
+    assert sm["measurement_std_deg_median"] > 0 and len(sm["dofs"]) == 31
+    assert set(m["filtered"]) == {"orientation_error_deg", "mpjpe_mm", "mpjpe_root_relative_mm"}
+    assert m["filtered"]["mpjpe_mm"] != m["mpjpe_mm"]["mean"]
+
+
 def test_hypothesis_arrays_pad_missing_modes_with_nan():
     import numpy as np
 

@@ -33,9 +33,11 @@ PRESETS = [
     ("hauberg_depth", "stereo", ["tracker.num_particles=32"]),
     ("kjs", "monocular", ["tracker.num_particles=16"]),
     ("kjs", "monocular", ["tracker.num_particles=16", "+smoother@tracker.smoother=viterbi"]),
+    ("p", "studio", ["tracker.num_particles=32", "tracker.inference.layers=3",
+                     "+smoother@tracker.smoother=kalman"]),
 ]
 IDS = ["p", "g", "gs", "rs", "p_sir", "ls", "p_prior_refined", "hauberg_spatial",
-       "hauberg_silhouette", "hauberg_depth", "kjs", "kjs_viterbi"]
+       "hauberg_silhouette", "hauberg_depth", "kjs", "kjs_viterbi", "p_kalman"]
 
 
 @pytest.fixture(scope="module")

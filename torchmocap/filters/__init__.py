@@ -41,6 +41,12 @@ from torchmocap.filters.inference import (
     SIRInference,
     SpreadDiffusion,
 )
+from torchmocap.filters.kalman_smoothing import (
+    KalmanSmoother,
+    cv_kalman_smoother,
+    fit_cv_noise,
+    unwrap_angles,
+)
 from torchmocap.filters.local import LocalOptimiser, LocalResult, minimise_local
 from torchmocap.filters.mixture import (
     MixtureInference,
@@ -138,6 +144,10 @@ __all__ = [
     "TrackState",
     "Tracker",
     "ViterbiSmoother",
+    "KalmanSmoother",
+    "cv_kalman_smoother",
+    "fit_cv_noise",
+    "unwrap_angles",
     "WeightedMeanEstimator",
     "angles_from_matrix",
     "anneal",
