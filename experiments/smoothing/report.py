@@ -24,6 +24,8 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 METRICS = ("orientation_error_deg", "mpjpe_mm", "mpjpe_root_relative_mm")
+#: reported when every run has it (trackers scored by Hauberg & Pedersen's eq. 16)
+MARKERS = "marker_error_mm"
 
 
 def load(runs_dir: Path) -> list[dict]:
@@ -34,11 +36,12 @@ def load(runs_dir: Path) -> list[dict]:
         if "filtered" not in m or "smoother" not in m:
             raise ValueError(f"{p}: not a smoothed run (no 'filtered' / 'smoother')")
         scenario, clip, tracker = p.parts[-5], p.parts[-4], p.parts[-3]
+        keys = METRICS + ((MARKERS,) if MARKERS in m["filtered"] else ())
         out.append({
             "scenario": scenario, "clip": clip, "tracker": tracker,
             "seed": int(p.parts[-2][4:]),
-            "filtered": {k: float(m["filtered"][k]) for k in METRICS},
-            "smoothed": {k: float(m[k]["mean"]) for k in METRICS},
+            "filtered": {k: float(m["filtered"][k]) for k in keys},
+            "smoothed": {k: float(m[k]["mean"]) for k in keys},
             "r_deg": m["smoother"].get("measurement_std_deg_median"),
             "q_deg": m["smoother"].get("acceleration_std_deg_median"),
             "clamped": int(m["smoother"].get("clamped", 0)),
@@ -51,16 +54,23 @@ def _mean(xs):
     return sum(xs) / len(xs) if xs else math.nan
 
 
+def metrics_of(runs: list[dict]) -> tuple[str, ...]:
+    """The measures of the table: METRICS, and the marker error when every run has it."""
+    return METRICS + ((MARKERS,) if runs and all(MARKERS in r["filtered"] for r in runs)
+                      else ())
+
+
 def summarise(runs: list[dict]) -> list[dict]:
     """Rows per (scenario, tracker, clip) averaged over seeds, then per (scenario, tracker) the
     mean over clips (clip ``"mean"``)."""
     keys = sorted({(r["scenario"], r["tracker"], r["clip"]) for r in runs})
+    measures = metrics_of(runs)
     rows = []
     for s, t, c in keys:
         sel = [r for r in runs if (r["scenario"], r["tracker"], r["clip"]) == (s, t, c)]
         rows.append({"scenario": s, "tracker": t, "clip": c, "seeds": len(sel),
                      **{f"{w}_{k}": _mean([r[w][k] for r in sel])
-                        for w in ("filtered", "smoothed") for k in METRICS},
+                        for w in ("filtered", "smoothed") for k in measures},
                      "r_deg": _mean([r["r_deg"] for r in sel]),
                      "q_deg": _mean([r["q_deg"] for r in sel])})
     for s, t in sorted({(r["scenario"], r["tracker"]) for r in rows}):
@@ -76,6 +86,7 @@ def _pct(a, b):
 
 
 def markdown(rows: list[dict]) -> str:
+    measures = METRICS + ((MARKERS,) if f"filtered_{MARKERS}" in rows[0] else ())
     lines = ["# Offline Kalman smoother vs the tracker's own estimates", "",
              "Constant-velocity Rauch–Tung–Striebel smoother per DoF, noise estimated by maximum "
              "likelihood (`+smoother@tracker.smoother=kalman`); errors over frames 1..T-1, mean "
@@ -83,12 +94,15 @@ def markdown(rows: list[dict]) -> str:
              "smoother. r, q: the fitted measurement / acceleration std (median over the "
              "rotation DoFs, degrees and degrees per frame²).", "",
              "| scenario | tracker | clip | orientation (°) filtered → smoothed | MPJPE (mm) "
-             "filtered → smoothed | root-aligned MPJPE (mm) | r (°) | q (°/frame²) |",
-             "|---|---|---|---|---|---|---:|---:|"]
+             "filtered → smoothed | root-aligned MPJPE (mm) | "
+             + ("marker error, eq. 16 (mm) | " if MARKERS in measures else "")
+             + "r (°) | q (°/frame²) |",
+             "|---|---|---|---|---|---|" + ("---|" if MARKERS in measures else "")
+             + "---:|---:|"]
     for r in rows:
         bold = "**" if r["clip"] == "mean" else ""
         cells = []
-        for k in METRICS:
+        for k in measures:
             a, b = r[f"filtered_{k}"], r[f"smoothed_{k}"]
             cells.append(f"{bold}{a:.1f} → {b:.1f} ({_pct(a, b)}){bold}")
         lines.append(f"| {r['scenario']} | `{r['tracker']}` | {r['clip']} | " + " | ".join(cells)
@@ -132,6 +146,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", type=Path, default=HERE / "runs" / "kalman")
     ap.add_argument("--out", type=Path, default=HERE / "results")
+    ap.add_argument("--name", default="kalman", help="file stem of the table and the plot")
     args = ap.parse_args(argv)
     try:
         runs = load(args.runs)
@@ -143,9 +158,9 @@ def main(argv=None) -> int:
         return 2
     rows = summarise(runs)
     args.out.mkdir(parents=True, exist_ok=True)
-    _write_atomic(args.out / "kalman.md", markdown(rows))
-    plot(rows, args.out / "kalman.png")
-    print(f"report: {len(runs)} runs -> {args.out / 'kalman.md'}")
+    _write_atomic(args.out / f"{args.name}.md", markdown(rows))
+    plot(rows, args.out / f"{args.name}.png")
+    print(f"report: {len(runs)} runs -> {args.out / (args.name + '.md')}")
     return 0
 
 

@@ -150,7 +150,8 @@ def test_smoothed_run_reports_the_filtered_errors_beside(tmp_path):
                     "progress=false", "overlays=0", "glb.enabled=false"])
     m = run(cfg, tmp_path)
     assert m["smoother"]["name"] == "viterbi" and 0 <= m["smoother"]["changed_frames"] <= 4
-    assert set(m["filtered"]) == {"orientation_error_deg", "mpjpe_mm", "mpjpe_root_relative_mm"}
+    assert set(m["filtered"]) == {"orientation_error_deg", "mpjpe_mm", "mpjpe_root_relative_mm",
+                                  "marker_error_mm"}
     hyp = m["hypotheses"]
     assert all(hyp["mpjpe_root_relative_best_mm"]["mean"] <= hyp[k]["mean"] + 1e-9
                for k in ("mpjpe_root_relative_top_mm",))
@@ -196,8 +197,11 @@ def test_kalman_smoothed_run_reports_both_and_saves_the_filtered_track(tmp_path)
     sm = m["smoother"]
     assert sm["name"] == "kalman" and sm["changed_frames"] == 5
     assert sm["measurement_std_deg_median"] > 0 and len(sm["dofs"]) == 31
-    assert set(m["filtered"]) == {"orientation_error_deg", "mpjpe_mm", "mpjpe_root_relative_mm"}
+    # the same errors of the tracker's own estimates, the skin-marker error (eq. 16) included
+    assert set(m["filtered"]) == {"orientation_error_deg", "mpjpe_mm", "mpjpe_root_relative_mm",
+                                  "marker_error_mm"}
     assert m["filtered"]["mpjpe_mm"] != m["mpjpe_mm"]["mean"]
+    assert m["filtered"]["marker_error_mm"] != m["marker_error_mm"]["mean"]
 
 
 def test_hypothesis_arrays_pad_missing_modes_with_nan():

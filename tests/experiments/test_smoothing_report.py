@@ -9,10 +9,11 @@ from pathlib import Path
 import pytest
 
 
-def _write(path: Path, filt: float, smooth: float, smoother=True) -> None:
+def _write(path: Path, filt: float, smooth: float, smoother=True, markers=False) -> None:
     path.mkdir(parents=True)
     m = {k: {"mean": smooth} for k in ("orientation_error_deg", "mpjpe_mm",
-                                        "mpjpe_root_relative_mm")}
+                                        "mpjpe_root_relative_mm")
+         + (("marker_error_mm",) if markers else ())}
     if smoother:
         m["filtered"] = {k: filt for k in m}
         m["smoother"] = {"name": "kalman", "measurement_std_deg_median": 2.0,
@@ -34,6 +35,21 @@ def test_table_means_and_changes(tmp_path, load_script):
     # the clip mean of the seed means: (41 + 61) / 2 -> (37 + 57) / 2
     assert "| studio | `p` | mean | **51.0 → 47.0 (-8 %)**" in md
     assert not list((tmp_path / "out").glob("*.tmp*"))
+
+
+def test_marker_error_column_when_every_run_has_it(tmp_path, load_script):
+    rep = load_script("smoothing/report.py")
+    runs = tmp_path / "runs"
+    _write(runs / "stereo" / "boxing" / "hauberg_depth" / "seed0", 50.0, 45.0, markers=True)
+    assert rep.main(["--runs", str(runs), "--out", str(tmp_path / "out"),
+                     "--name", "hauberg"]) == 0
+    md = (tmp_path / "out" / "hauberg.md").read_text()
+    assert "marker error, eq. 16 (mm)" in md
+    assert md.count("50.0 → 45.0 (-10 %)") == 2 * 4  # per clip and mean, four measures
+    _write(runs / "stereo" / "boxing" / "hauberg_depth" / "seed1", 50.0, 45.0)
+    assert rep.main(["--runs", str(runs), "--out", str(tmp_path / "out"),
+                     "--name", "mixed"]) == 0
+    assert "marker error" not in (tmp_path / "out" / "mixed.md").read_text()
 
 
 def test_runs_without_a_smoother_are_named(tmp_path, load_script, capsys):

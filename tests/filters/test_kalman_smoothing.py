@@ -187,6 +187,34 @@ def test_euler_branch_jumps_of_a_ball_joint_are_not_motion(walk):
     assert _mpjpe(sk, angles, truth) > 4 * _mpjpe(sk, so3, truth)
 
 
+def test_held_dofs_are_kept_and_left_out_of_the_noise_fit(walk):
+    """An upper-body tracker never moves the legs: those DoFs stay exactly as they were and do
+    not pull the pooled noise estimate towards zero."""
+    gt = walk.ground_truth
+    sk = gt.build_skeleton()
+    truth = gt.theta.double()
+    g = torch.Generator().manual_seed(0)
+    noisy = truth + math.radians(3.0) * torch.randn(truth.shape, generator=g,
+                                                    dtype=torch.float64)
+    noisy[:, sk.translation_dofs] = truth[:, sk.translation_dofs]
+    noisy[0] = truth[0]
+    noisy = sk.clamp(noisy)
+    legs = [d for j in ("l_hip", "l_knee", "l_ankle", "r_hip", "r_knee", "r_ankle")
+            for d in sk.joint_dofs(j)]
+    held = noisy.clone()
+    held[:, legs] = noisy[0, legs]
+    sm = KalmanSmoother(skeleton=sk)
+    out_all, info_all = sm.smooth_theta(noisy)
+    out, info = sm.smooth_theta(held)
+    assert torch.equal(out[:, legs], held[:, legs])
+    assert info["held_dofs"] == len(legs) + len(sk.translation_dofs) - \
+        sum(bool((truth[:, d] != truth[0, d]).any()) for d in sk.translation_dofs)
+    # the noise fitted on the moving DoFs is the same as with the legs moving too
+    assert info["measurement_std_deg_median"] == pytest.approx(
+        info_all["measurement_std_deg_median"], rel=0.5)
+    assert info["measurement_std_deg_median"] > 1.5
+
+
 def test_root_heading_across_pi_and_fixed_noise(walk):
     sk = walk.ground_truth.build_skeleton()
     T = 30
@@ -206,19 +234,26 @@ def test_root_heading_across_pi_and_fixed_noise(walk):
 
 
 def test_limits_are_kept_and_counted():
+    """A knee flexing fast into its limit and stopping there: the constant-velocity smoother
+    overshoots the corner; the overshoot is clamped into the limit and counted."""
     from torchmocap.skeleton import human31
     sk = human31().double()
-    g = torch.Generator().manual_seed(0)
     T = 40
-    theta = sk.zero_pose((T,), dtype=torch.float64)
     knee = sk.dof_index([n for n in sk.dof_names if "knee" in n][0])
     lo = float(sk.lower[knee])
-    # a knee held at its limit with noise that the clamp folded onto it
-    theta[:, knee] = torch.clamp(lo + 0.05 * torch.randn(T, generator=g, dtype=torch.float64),
-                                 min=lo)
-    out, info = KalmanSmoother(skeleton=sk).smooth_theta(theta)
-    assert bool(sk.within_limits(out, tol=1e-12).all())
-    assert info["clamped"] > 0
+    t = torch.arange(T, dtype=torch.float64)
+    clamped = 0
+    for seed in range(3):
+        g = torch.Generator().manual_seed(seed)
+        theta = sk.zero_pose((T,), dtype=torch.float64)
+        theta[:, knee] = torch.clamp(lo + torch.clamp(1.2 - 0.12 * t, min=0)
+                                     + 0.03 * torch.randn(T, generator=g, dtype=torch.float64),
+                                     min=lo)
+        out, info = KalmanSmoother(skeleton=sk).smooth_theta(theta)
+        assert bool(sk.within_limits(out, tol=1e-12).all())
+        assert info["held_dofs"] == sk.num_dofs - 1
+        clamped += info["clamped"]
+    assert clamped > 0
 
 
 def test_smooth_keeps_the_filtered_track_and_reports():

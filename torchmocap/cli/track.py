@@ -162,6 +162,9 @@ def finish(cfg, out: Path, seq, runtime, tracker, track, fingerprint: str,
                                    "mpjpe_root_relative_mm": f["mpjpe_root_relative_mm"]["mean"]}
         if seq.ground_truth.markers is not None:
             metrics["marker_error_mm"] = _marker_error(seq, runtime, track.theta)
+            if track.filtered is not None:
+                metrics["filtered"]["marker_error_mm"] = _marker_error(
+                    seq, runtime, track.filtered)["mean"]
         hyp = _hypotheses(seq, sk, track.infos)
         if hyp:
             metrics["hypotheses"] = hyp

@@ -294,25 +294,40 @@ class KalmanSmoother(Smoother):
         q_all = torch.zeros(D, dtype=torch.float64)
         loglik = 0.0
         ball, series = self._series(y, D)
+        moved = torch.zeros(D, dtype=torch.bool)  # DoFs the tracker moved (and so smoothed)
         for kind, idx, yg in series:
-            r, q, ll = fit_cv_noise(yg, *self._grids(kind), shared=not self.per_dof)
-            xs, _ = cv_kalman_smoother(yg, r, q)
-            loglik += float(ll.sum())
+            # a DoF the tracker never moved (an upper-body preset's legs) says nothing about the
+            # noise: it is left as it is and kept out of the fit
+            active = (yg != yg[:1]).any(0)
+            r = torch.zeros(yg.shape[1], dtype=torch.float64)
+            q = torch.zeros(yg.shape[1], dtype=torch.float64)
+            xs = yg.clone()
+            if bool(active.any()):
+                ra, qa, ll = fit_cv_noise(yg[:, active], *self._grids(kind),
+                                          shared=not self.per_dof)
+                xs[:, active] = cv_kalman_smoother(yg[:, active], ra, qa)[0]
+                r[active], q[active] = ra, qa
+                loglik += float(ll.sum())
             if kind == "so3":
                 xs = torch.nn.functional.normalize(xs.reshape(T, len(ball), 4), dim=-1)
                 scale = 2 * 180.0 / math.pi  # quaternion component -> rotation angle
                 for k, g in enumerate(ball):
                     gi = list(g.indices)
+                    if not bool(active[4 * k:4 * k + 4].any()):
+                        continue  # a joint held still: its angles stay exactly as they were
+                    moved[gi] = True
                     R = quaternion_to_matrix(xs[:, k])
                     out[:, gi] = g.values(R, y[:, gi])  # the branch nearest the estimate
                     r_all[gi] = float(r[4 * k:4 * k + 4].mean().sqrt()) * scale
                     q_all[gi] = float(q[4 * k:4 * k + 4].mean().sqrt()) * scale
             else:
                 out[:, idx] = xs
+                moved[torch.tensor(idx)[active]] = True
                 scale = 1000.0 if kind == "translation" else 180.0 / math.pi
                 r_all[idx], q_all[idx] = r.sqrt() * scale, q.sqrt() * scale
         trans = set(self.translation_dofs)
         rot = [d for d in range(D) if d not in trans]
+        rot_moved = [d for d in rot if bool(moved[d])]
         clamped = 0
         if self.has_skeleton:
             lo_l = self.lower.to("cpu", torch.float64)
@@ -337,12 +352,13 @@ class KalmanSmoother(Smoother):
             "changed_frames": int((result != theta).any(-1).sum()),
             "mean_change_deg": round(float(torch.rad2deg(change.abs().mean())), 4)
             if rot else 0.0,
-            "measurement_std_deg_median": round(float(r_all[rot].median()), 4)
-            if rot else None,
-            "acceleration_std_deg_median": round(float(q_all[rot].median()), 4)
-            if rot else None,
+            "measurement_std_deg_median": round(float(r_all[rot_moved].median()), 4)
+            if rot_moved else None,
+            "acceleration_std_deg_median": round(float(q_all[rot_moved].median()), 4)
+            if rot_moved else None,
             "log_likelihood": round(loglik, 3),
             "clamped": clamped,
+            "held_dofs": int((~moved).sum()),
             "dofs": {names[d]: {"measurement_std": round(float(r_all[d]), 4),
                                 "acceleration_std": round(float(q_all[d]), 4)}
                      for d in range(D)},
