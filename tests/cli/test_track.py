@@ -180,7 +180,7 @@ def test_smoothed_run_reports_the_filtered_errors_beside(tmp_path):
     assert np.mean(best) == pytest.approx(hyp["mpjpe_best_mm"]["mean"], rel=1e-3)
 
 
-def test_kalman_smoothed_run_reports_both_and_saves_the_filtered_track(tmp_path):
+def test_kalman_smoothed_run_reports_both_and_saves_the_filtered_track(tmp_path, capsys):
     """Any tracker with the Kalman smoother: metrics.json's errors are the smoothed track's
     (recomputed here from track.npz), "filtered" the tracker's own, and the fitted noise."""
     import numpy as np
@@ -191,6 +191,13 @@ def test_kalman_smoothed_run_reports_both_and_saves_the_filtered_track(tmp_path)
     m = run(cfg, tmp_path)
     z = np.load(tmp_path / "track.npz")
     assert z["theta_filtered"].shape == z["theta"].shape == (6, 31)
+    from torchmocap.cli.track import _print_summary
+    _print_summary(m)
+    out = capsys.readouterr().out
+    f = m["filtered"]
+    import re
+    assert re.search(rf"filtered \(before kalman\) +{f['orientation_error_deg']:.2f} deg, "
+                     rf"{f['mpjpe_mm']:.1f} mm", out), out
     assert np.array_equal(z["theta"][0], z["theta_filtered"][0])
     assert not np.array_equal(z["theta"], z["theta_filtered"])
     assert np.mean(z["mpjpe_mm"]) == pytest.approx(m["mpjpe_mm"]["mean"], rel=1e-5)

@@ -659,6 +659,10 @@ def _print_summary(m: dict) -> None:
     r = m.get("mpjpe_root_relative_mm")
     if r:
         rows.append(("MPJPE, root-aligned (mm)", f"{r['mean']:.1f} +- {r['std']:.1f}"))
+    f = m.get("filtered")
+    if f and m.get("smoother"):  # the errors above are the smoothed track's
+        rows.append((f"filtered (before {m['smoother'].get('name', 'smoothing')})",
+                     f"{f['orientation_error_deg']:.2f} deg, {f['mpjpe_mm']:.1f} mm"))
     held = m.get("hold_first_pose")
     if held:
         rows.append(("holding the first pose", f"{held['orientation_error_deg']:.2f} deg, "
