@@ -45,6 +45,29 @@ def test_recovers_thicker_limbs():
         fit(th, Frame(index=0, time=0.0))
 
 
+def test_bounds_hold_over_repeated_fits():
+    """Limbs twice as thick as the model, bounds at 1.3: one call stops at the bound, and a
+    second call (a refit pass) cannot go past it — the bound is on the total scale."""
+    sk = human31()
+    rig = make_ring_rig(4).float()
+    th = sk.zero_pose()
+    th[sk.dof_index("l_shoulder_abd")] = 0.8
+    truth = CapsuleBody(sk).float()
+    arm = [i for i, n in enumerate(truth.bone_names) if "elbow" in n or "wrist" in n]
+    truth.radii[arm] *= 2.0
+    frame = Frame(index=0, time=0.0, silhouettes=capsule_masks(truth, rig, th))
+    body = CapsuleBody(sk).float()
+    r_init = body.radii.clone()
+    fit = SilhouetteBodyFit(body, rig, iterations=40, stride=2, max_scale=1.3, lr=0.1)
+    first = fit(th, frame)
+    assert first["scales"]["wrist"] == pytest.approx(1.3, rel=1e-3)
+    second = fit(th, frame)
+    ratio = body.radii / r_init
+    assert float(ratio.max()) <= 1.3 + 1e-4, ratio
+    assert second["scales"]["wrist"] == pytest.approx(1.0, abs=1e-4)  # no room left
+    assert second["total_scales"]["wrist"] == pytest.approx(1.3, rel=1e-3)
+
+
 def _disc(mask: torch.Tensor, centre, radius: float) -> None:
     """Paint a filled disc of ``radius`` pixels at ``centre (u, v)`` into ``mask (H, W)``."""
     H, W = mask.shape
@@ -193,13 +216,18 @@ def test_tracker_refit_passes_alternate_pose_and_body():
     (p,) = info["refit"]
     assert p["energy_after"] < p["energy_before"] or not p["kept"]
     assert p["body_fit"]["iou_after"] >= info["body_fit"]["iou_after"] - 0.01
-    # the body was fitted in place: each pass scales the radii the previous one left
+    # the body was fitted in place: each pass scales the radii the previous one left, within
+    # the bounds on the total scale
     ratio = rt.body.radii / CapsuleBody(sk).float().radii
     fit = tr.body_fit
     s1, s2 = info["body_fit"]["scales"], p["body_fit"]["scales"]
     expected = torch.tensor([s1[fit.segments[i]] * s2[fit.segments[i]]
                              for i in fit.segment_index.tolist()])
     assert ratio == pytest.approx(expected, rel=2e-3)
+    total = p["body_fit"]["total_scales"]
+    assert ratio == pytest.approx(torch.tensor([total[fit.segments[i]]
+                                                for i in fit.segment_index.tolist()]), rel=2e-3)
+    assert fit.min_scale - 1e-4 <= float(ratio.min()) <= float(ratio.max()) <= fit.max_scale + 1e-4
     assert not torch.allclose(ratio, torch.ones_like(ratio))
     # the preset frees the head capsule from the neck's axis: the offset is in the body
     off = p["body_fit"]["offsets"]["head_top"]
@@ -221,6 +249,7 @@ def test_tracker_refit_passes_alternate_pose_and_body():
     assert m["iou_after"] == pytest.approx(p["body_fit"]["iou_after"])
     assert m["iou_after"] > m["iou_before"]
     assert m["scales"] == pytest.approx(p["body_fit"]["scales"])
+    assert m["total_scales"] == pytest.approx(total)
     with pytest.raises(ValueError, match="refit_passes"):
         Tracker(sk, tr.predictor, tr.proposal, tr.likelihood, tr.inference, tr.estimator,
                 refit_passes=-1)

@@ -481,6 +481,9 @@ def _diagnostics(infos: list) -> dict:
             "energy_after": _number(fits[-1].get("energy_after")),
             "scales": {str(k): _number(v) for k, v in dict(fits[-1].get("scales", {})).items()},
             "passes": len(fits)}
+        if isinstance(fits[-1].get("total_scales"), dict):  # all passes together
+            out["body_fit"]["total_scales"] = {str(k): _number(v)
+                                               for k, v in fits[-1]["total_scales"].items()}
         if all("kept" in f for f in fits):  # per pass: False where a fit was undone
             out["body_fit"]["kept"] = [bool(f["kept"]) for f in fits]
         if all(f.get("seconds") is not None for f in fits):  # the fits alone

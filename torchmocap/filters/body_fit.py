@@ -65,7 +65,9 @@ class SilhouetteBodyFit(nn.Module):
         rig: the cameras of the silhouettes.
         iterations: Adam steps.
         lr: step size (in log-radius).
-        min_scale, max_scale: bounds of each radius relative to its initial value.
+        min_scale, max_scale: bounds of each radius relative to its value when the fit was
+            built — over all calls: a second call (a refit pass) scales the radii the first
+            left, within the same total range.
         symmetric: one scale for a left/right pair of segments.
         stride: pixel stride of the soft IoU.
         tau: softness (pixels) of the soft silhouettes (small: a wide sigmoid biases thin limbs
@@ -89,7 +91,8 @@ class SilhouetteBodyFit(nn.Module):
 
     ``forward(theta (D,), frame) -> info`` with ``iou_before``/``iou_after`` (mean over views),
     ``kept``,
-    ``energy_before``/``energy_after``, the fitted ``scales`` per segment and, with ``offsets``,
+    ``energy_before``/``energy_after``, the fitted ``scales`` per segment (this call's) and
+    ``total_scales`` (against the radii the fit was built with), and, with ``offsets``,
     the fitted ``offsets`` (metres, parent frame) per bone; with ``hull_filter``, ``hull``:
     whether it was applied, the views carved, the fraction of the foreground kept and the IoUs
     with the filtered masks.
@@ -143,6 +146,9 @@ class SilhouetteBodyFit(nn.Module):
         self.offset_prior = float(offset_prior)
         self.register_buffer("offset_index", torch.tensor(
             [body.bone_names.index(b) for b in self.offset_bones], dtype=torch.long))
+        # the bounds hold against these radii (the body's when the fit was built) over every
+        # call: refit passes scale what the previous pass left, within the same total range
+        self.register_buffer("initial_radii", body.radii.detach().clone(), persistent=False)
         names = [_segment(n) if symmetric else n for n in body.bone_names]
         self.segments = list(dict.fromkeys(names))
         self.register_buffer("segment_index", torch.tensor([self.segments.index(n)
@@ -216,7 +222,16 @@ class SilhouetteBodyFit(nn.Module):
         log_s = torch.zeros(len(self.segments), dtype=dt, device=dev, requires_grad=True)
         delta = torch.zeros(len(self.offset_bones), 3, dtype=dt, device=dev,
                             requires_grad=fit_off)
-        lo, hi = math.log(self.min_scale), math.log(self.max_scale)
+        # per segment: the room left to the bounds by the scale earlier calls applied
+        done = torch.where(self.initial_radii > 0, r0 / self.initial_radii.to(r0).clamp_min(1e-12),
+                           torch.ones_like(r0)).log()
+        seg = self.segment_index.to(dev)
+        n_seg = len(self.segments)
+        lo = torch.full((n_seg,), -math.inf, dtype=dt, device=dev).scatter_reduce(
+            0, seg, math.log(self.min_scale) - done, "amax")
+        hi = torch.full((n_seg,), math.inf, dtype=dt, device=dev).scatter_reduce(
+            0, seg, math.log(self.max_scale) - done, "amin")
+        hi = torch.maximum(hi, lo)  # a segment already outside (set by hand): held at its bound
         groups = [{"params": [log_s], "lr": self.lr}]
         if fit_off:
             groups.append({"params": [delta], "lr": self.offset_lr})
@@ -243,7 +258,7 @@ class SilhouetteBodyFit(nn.Module):
                 loss.backward()
             opt.step()
             with torch.no_grad():
-                log_s.clamp_(lo, hi)
+                log_s.copy_(torch.minimum(torch.maximum(log_s, lo), hi))
                 if fit_off:
                     delta.copy_(torch.minimum(torch.maximum(delta, d_lo), d_hi))
                 v = float(objective(log_s, delta))
@@ -261,10 +276,14 @@ class SilhouetteBodyFit(nn.Module):
             set_radii(r0)
             body.axis_offsets.copy_(off0)
             best, e1, iou1, iou1_f = torch.zeros_like(best), e0, iou0, iou0_f
+        total = body.radii / self.initial_radii.to(body.radii).clamp_min(1e-12)
+        first = [self.segment_index.tolist().index(i) for i in range(len(self.segments))]
         info = {"iou_before": iou0, "iou_after": iou1, "kept": kept, "energy_before": e0,
                 "energy_after": e1,
                 "scales": {n: round(float(math.exp(float(best[i]))), 4)
-                           for i, n in enumerate(self.segments)}}
+                           for i, n in enumerate(self.segments)},
+                "total_scales": {n: round(float(total[first[i]]), 4)
+                                 for i, n in enumerate(self.segments)}}
         if hull_info is not None:
             if iou0_f:
                 hull_info.update(iou_before=iou0_f[0], iou_after=iou1_f[0])
