@@ -294,9 +294,11 @@ def plot_bodytrack(table: dict, path: Path) -> None:
 
 
 def _write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
+    """Write ``text`` to ``path`` atomically (never a half-written table)."""
+    from torchmocap.io.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
 
 
 def main_bodytrack(runs_dir: Path, out: Path) -> int:

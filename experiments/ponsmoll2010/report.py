@@ -385,10 +385,11 @@ RUN_DIRS = {"body_fit": "fig8"}
 
 
 def _write_atomic(path: Path, text: str) -> None:
-    """Write ``text`` beside ``path`` and move it into place: never a half-written table."""
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
+    """Write ``text`` to ``path`` atomically (never a half-written table)."""
+    from torchmocap.io.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
 
 
 def main() -> None:

@@ -97,7 +97,7 @@ def test_bodytrack_table_per_view_and_seed_spread(tmp_path, load_script):
     assert "| 0.550 ± 0.000 |" in md and "| – |" in md  # real_frame: one seed, no offset
     assert "Missing runs (5)" in md and "real_frame_hull_centred/seed0" in md
     assert (out / "bodytrack.png").stat().st_size > 1000
-    assert not list(out.glob("*.tmp*"))
+    assert not list(out.glob("*tmp*"))
     assert rep.main(["bodytrack", "--runs", str(tmp_path / "none"), "--out", str(out)]) == 2
 
 

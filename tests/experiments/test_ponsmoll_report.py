@@ -201,4 +201,4 @@ def test_main_writes_tables_atomically(tmp_path, load_script, monkeypatch):
     monkeypatch.setitem(rep.FIGURES, "control", lambda: "| new |")
     rep.main()
     assert (tmp_path / "results" / "control.md").read_text() == "| new |\n"
-    assert not list((tmp_path / "results").glob("*.tmp"))
+    assert not list((tmp_path / "results").glob("*tmp*"))

@@ -34,7 +34,7 @@ def test_table_means_and_changes(tmp_path, load_script):
     assert "| studio | `p` | jump | 61.0 → 57.0 (-7 %)" in md
     # the clip mean of the seed means: (41 + 61) / 2 -> (37 + 57) / 2
     assert "| studio | `p` | mean | **51.0 → 47.0 (-8 %)**" in md
-    assert not list((tmp_path / "out").glob("*.tmp*"))
+    assert not list((tmp_path / "out").glob("*tmp*"))
 
 
 def test_marker_error_column_when_every_run_has_it(tmp_path, load_script):
