@@ -130,10 +130,11 @@ def plot(rows: list[dict], path: Path) -> None:
         ax.set_ylabel("MPJPE (mm)")
     axes[0][0].legend(fontsize=8)
     fig.tight_layout()
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=110)
+    from torchmocap.io.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
-    tmp.replace(path)
 
 
 def _write_atomic(path: Path, text: str) -> None:
