@@ -58,7 +58,7 @@ def test_bounds_hold_over_repeated_fits():
     frame = Frame(index=0, time=0.0, silhouettes=capsule_masks(truth, rig, th))
     body = CapsuleBody(sk).float()
     r_init = body.radii.clone()
-    fit = SilhouetteBodyFit(body, rig, iterations=40, stride=2, max_scale=1.3, lr=0.1)
+    fit = SilhouetteBodyFit(body, rig, iterations=20, stride=2, max_scale=1.3, lr=0.1)
     first = fit(th, frame)
     assert first["scales"]["wrist"] == pytest.approx(1.3, rel=1e-3)
     second = fit(th, frame)
