@@ -46,9 +46,9 @@ def test_every_experiment_config_runs_for_three_frames(name, tmp_path, shared_da
 
     spec = yaml.safe_load((ROOT / "conf" / "experiment" / f"{name}.yaml").read_text())
     params = spec["hydra"]["sweeper"]["params"]
-    # one seed and one clip; every other choice of the sweep (trackers, data options) runs
-    narrow = [f"{k}={str(v).split(',')[0]}" for k, v in params.items()
-              if k in ("seed", "data/clip")]
+    # one seed, one clip, one scenario (every scenario runs in some experiment's other choices)
+    one = ("seed", "data/clip", "data.scenario")
+    narrow = [f"{k}={str(v).split(',')[0]}" for k, v in params.items() if k in one]
     narrow += _vendored_clip(str(params.get("data/clip", "")).split(",")[0], shared_data)
     if str(params.get("data", "")) == "bodytrack":  # the real frame: no clip, one frame
         root = shared_data / "multiview" / "bodytrack_sequenceB_1"
@@ -63,7 +63,7 @@ def test_every_experiment_config_runs_for_three_frames(name, tmp_path, shared_da
     trackers = str(params.get("tracker", "p")).split(",")
     n_jobs = 1  # per tracker (the budget below replaces a particle-count sweep)
     for k, v in params.items():
-        if k not in ("seed", "data/clip", "tracker", "tracker.num_particles"):
+        if k not in (*one, "tracker", "tracker.num_particles"):
             n_jobs *= len(str(v).split(","))
     groups: dict[tuple[str, ...], list[str]] = {}
     for t in trackers:  # a tiny budget: annealing layers or descent steps
