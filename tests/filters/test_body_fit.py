@@ -48,11 +48,7 @@ def test_recovers_thicker_limbs():
 def test_bounds_hold_over_repeated_fits():
     """Limbs twice as thick as the model, bounds at 1.3: one call stops at the bound, and a
     second call (a refit pass) cannot go past it — the bound is on the total scale."""
-    sk = human31()
-    rig = make_ring_rig(4).float()
-    th = sk.zero_pose()
-    th[sk.dof_index("l_shoulder_abd")] = 0.8
-    truth = CapsuleBody(sk).float()
+    sk, rig, th, truth, _, _ = _arm_out_scene()
     arm = [i for i, n in enumerate(truth.bone_names) if "elbow" in n or "wrist" in n]
     truth.radii[arm] *= 2.0
     frame = Frame(index=0, time=0.0, silhouettes=capsule_masks(truth, rig, th))

@@ -302,6 +302,8 @@ def test_bad_tracks_are_named():
         cv_kalman_smoother(torch.zeros(4, 1, dtype=torch.float64), 0.0, 1.0)
     with pytest.raises(ValueError, match="y: expected"):
         fit_cv_noise(torch.zeros(2, 1), torch.ones(2), torch.ones(2))
+    with pytest.raises(ValueError, match="y: expected finite"):
+        cv_kalman_smoother(torch.tensor([[0.0], [float("inf")]], dtype=torch.float64), 1.0, 1.0)
 
 
 @pytest.fixture(scope="module")

@@ -113,6 +113,9 @@ def cv_kalman_smoother(y: torch.Tensor, r, q) -> tuple[torch.Tensor, torch.Tenso
         ``(x (T, ...), loglik (...))``: the smoothed values and the log-likelihood of the
         innovations of frames 2..T-1 (the diffuse velocity takes frame 1).
     """
+    if y.dim() < 1 or y.shape[0] < 1 or not bool(torch.isfinite(y).all()):
+        raise ValueError(f"y: expected finite observations (T >= 1, ...), got shape "
+                         f"{tuple(y.shape)}")
     r = torch.as_tensor(r, dtype=y.dtype, device=y.device)
     q = torch.as_tensor(q, dtype=y.dtype, device=y.device)
     if not bool((r > 0).all()) or not bool((q > 0).all()):
@@ -242,7 +245,7 @@ class KalmanSmoother(Smoother):
         joints' rotations as sign-continuous quaternions (``so3``), the other rotation DoFs as
         unwrapped angles, the root translation."""
         trans = set(self.translation_dofs)
-        ball = [g for g in self.ball_groups] if self.rotations == "so3" else []
+        ball = list(self.ball_groups) if self.rotations == "so3" else []
         in_ball = {i for g in ball for i in g.indices}
         angles = [d for d in range(D) if d not in trans and d not in in_ball]
         out = []
