@@ -10,6 +10,8 @@ import torch
 
 from torchmocap.assembly import Runtime, build_tracker, tracker_config
 from torchmocap.filters import (
+    KalmanSmoother,
+    SmootherChain,
     Track,
     ViterbiSmoother,
     temporal_log_prior,
@@ -123,6 +125,68 @@ def test_bad_input_is_named():
         ViterbiSmoother().smooth(nan)
 
 
+def _mirror_track(seed: int, T: int = 40):
+    """A smooth 2-DoF angle trajectory; each frame keeps two modes, the truth plus 2 degrees of
+    noise and its mirror image (the second DoF negated) plus noise, 0.5 higher in energy. The
+    filter switches to the mirror mode at frame 6 (a greedy choice) and stays there."""
+    g = torch.Generator().manual_seed(seed)
+    t = torch.arange(1, T, dtype=torch.float64)
+    truth = torch.stack([0.4 * torch.sin(0.08 * t), 0.6 * torch.sin(0.05 * t + 0.2)], 1)
+    noise = math.radians(2.0)
+    a = truth + noise * torch.randn(truth.shape, generator=g, dtype=torch.float64)
+    b = truth * torch.tensor([1.0, -1.0], dtype=torch.float64) + noise * torch.randn(
+        truth.shape, generator=g, dtype=torch.float64)
+    hyps = [[a[k].tolist(), b[k].tolist()] for k in range(T - 1)]
+    track = _track(hyps, [[0.0, 0.5]] * (T - 1), [0.0, 0.0])
+    track.theta = torch.cat([track.theta[:1], torch.where(
+        (torch.arange(1, T) >= 6)[:, None], b.float(), a.float())])
+    return track, torch.cat([torch.zeros(1, 2, dtype=torch.float64), truth])
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_chain_picks_the_modes_then_removes_their_jitter(seed):
+    track, truth = _mirror_track(seed)
+    viterbi, kalman = ViterbiSmoother(rotation_std_deg=10.0), KalmanSmoother()
+    chain = SmootherChain({"viterbi": viterbi, "kalman": kalman})
+    out = chain.smooth(track)
+
+    def err(theta):
+        return float((theta.double()[1:] - truth[1:]).abs().mean())
+
+    # the chain is the composition of its stages, and reports the tracker's own estimates
+    ref = kalman.smooth(viterbi.smooth(track))
+    assert torch.equal(out.theta, ref.theta)
+    assert torch.equal(out.filtered, track.theta)
+    rep = out.infos[0]["smoother"]
+    assert rep["name"] == "viterbi+kalman"
+    assert [r["name"] for r in rep["stages"]] == ["viterbi", "kalman"]
+    assert rep["changed_frames"] == int((out.theta != track.theta).any(-1).sum())
+    assert track.infos[0] == {}  # the input track is left as it was
+    # the filter is on the mirror branch; Viterbi gets the branch back (the noise stays);
+    # the Kalman stage removes much of the noise; Kalman alone smooths across the wrong branch
+    e_filter, e_vit, e_chain = err(track.theta), err(viterbi.smooth(track).theta), err(out.theta)
+    e_kalman = err(kalman.smooth(track).theta)
+    noise = math.radians(2.0) * math.sqrt(2 / math.pi)  # mean |N(0, 2 deg)|
+    assert e_filter > 5 * noise and e_kalman > 5 * noise
+    assert e_vit == pytest.approx(noise, rel=0.3)
+    assert e_chain < 0.7 * e_vit
+
+
+def test_chain_settings_are_checked_and_named():
+    with pytest.raises(ValueError, match="stages"):
+        SmootherChain([])
+    with pytest.raises(TypeError, match=r"stages\['kalman'\].*Smoother.*dict"):
+        SmootherChain({"viterbi": ViterbiSmoother(), "kalman": {"per_dof": True}})
+    with pytest.raises(TypeError, match=r"stages\['1'\].*chain inside a chain"):
+        SmootherChain([KalmanSmoother(), SmootherChain([KalmanSmoother()])])
+    from torchmocap.cli.track import _smoother_report
+
+    rep = SmootherChain([ViterbiSmoother(), KalmanSmoother()]).smooth(_mirror_track(0)[0])
+    clean = _smoother_report(rep.infos[0]["smoother"])
+    assert "modes" in rep.infos[0]["smoother"]["stages"][0]  # the per-frame modes are kept...
+    assert "modes" not in clean["stages"][0] and "dofs" in clean["stages"][1]  # ...not in JSON
+
+
 @pytest.fixture(scope="module")
 def walk_mono():
     from torchmocap.data.loaders import synthesized_sequence
@@ -164,3 +228,22 @@ def test_smoother_needs_a_multi_hypothesis_inference(walk_mono):
     _, rt = walk_mono
     with pytest.raises(ValueError, match="smoother.*inference=mixture.*AnnealedInference"):
         build_tracker(tracker_config("g", ["+smoother@tracker.smoother=viterbi"]), rt)
+
+
+def test_chain_config_composes_both_stages_and_checks_the_inference(walk_mono):
+    seq, rt = walk_mono
+    ov = ["tracker.num_particles=24", "tracker.inference.components=3",
+          "+smoother@tracker.smoother=viterbi_kalman",
+          "tracker.smoother.stages.kalman.per_dof=true"]
+    tr = build_tracker(tracker_config("kjs", ov), rt, seed=1)
+    assert isinstance(tr.smoother, SmootherChain)
+    vit, kal = tr.smoother.stages
+    assert isinstance(vit, ViterbiSmoother) and isinstance(kal, KalmanSmoother)
+    assert kal.per_dof and kal.ball_groups  # the stage got the tracker's skeleton
+    track = tr.run(seq, progress=False)
+    plain = build_tracker(tracker_config("kjs", ov[:2]), rt, seed=1).run(seq, progress=False)
+    assert torch.equal(track.filtered, plain.theta)
+    assert torch.equal(track.theta, kal.smooth(vit.smooth(plain)).theta)
+    # the Viterbi stage's requirement is checked when the tracker is assembled
+    with pytest.raises(ValueError, match="smoother.*inference=mixture"):
+        build_tracker(tracker_config("g", ["+smoother@tracker.smoother=viterbi_kalman"]), rt)

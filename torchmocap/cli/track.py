@@ -141,7 +141,7 @@ def finish(cfg, out: Path, seq, runtime, tracker, track, fingerprint: str,
     if track.filtered is not None:  # theta is smoothed; the filter's own estimates beside it
         arrays["theta_filtered"] = track.filtered.numpy()
         if smoothing:
-            metrics["smoother"] = {k: v for k, v in smoothing.items() if k != "modes"}
+            metrics["smoother"] = _smoother_report(smoothing)
     if seq.ground_truth is not None:
         errors = _errors(seq, sk, track.theta)
         metrics.update(errors.pop("summary"))
@@ -211,6 +211,16 @@ def _validate_tracker(cfg) -> None:
     stand_in = Runtime(skeleton=sk, body=CapsuleBody(sk).float(), rig=make_ring_rig(4).float(),
                        manifold=SensorManifold(sk))
     build_tracker(cfg.tracker, stand_in, seed=seed)
+
+
+def _smoother_report(report: dict) -> dict:
+    """A smoother's report for ``metrics.json``: without the per-frame mode indices (kept in
+    ``track.npz``'s hypotheses), also inside the stages of a chain."""
+    out = {k: v for k, v in report.items() if k != "modes"}
+    if isinstance(out.get("stages"), list):
+        out["stages"] = [_smoother_report(r) if isinstance(r, dict) else r
+                         for r in out["stages"]]
+    return out
 
 
 def _validation_bones(seq) -> list[str]:

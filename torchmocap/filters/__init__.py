@@ -90,6 +90,7 @@ from torchmocap.filters.resampling import (
 from torchmocap.filters.sir import SIRResult, SIRStep, sir_filter, sir_step
 from torchmocap.filters.smoothing import (
     Smoother,
+    SmootherChain,
     ViterbiSmoother,
     temporal_log_prior,
     viterbi_path,
@@ -136,6 +137,7 @@ __all__ = [
     "SIRResult",
     "SIRStep",
     "Smoother",
+    "SmootherChain",
     "ShrinkingDiffusion",
     "SpreadDiffusion",
     "StratifiedResampler",

@@ -20,17 +20,19 @@ not with filters (the trackers' ``Track.filtered`` keeps the filtered estimates)
 
 Functional core: :func:`temporal_log_prior`, :func:`viterbi_path`; module:
 :class:`ViterbiSmoother` (``tracker.smoother``; Hydra: ``+smoother@tracker.smoother=viterbi``).
+:class:`SmootherChain` runs smoothers one after the other (``smoother=viterbi_kalman``: the mode
+sequence first, then the Kalman smoother removes the jitter left within it).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import torch
 from torch import nn
 
-__all__ = ["Smoother", "ViterbiSmoother", "temporal_log_prior", "viterbi_path"]
+__all__ = ["Smoother", "SmootherChain", "ViterbiSmoother", "temporal_log_prior", "viterbi_path"]
 
 EMISSIONS = ("energy", "weights")
 
@@ -178,3 +180,60 @@ class ViterbiSmoother(Smoother):
     def extra_repr(self) -> str:
         return (f"rotation_std_deg={math.degrees(self.rotation_std):g}, "
                 f"translation_std={self.translation_std:g}, emission={self.emission!r}")
+
+
+class SmootherChain(Smoother):
+    """Smoothers applied one after the other: each stage smooths the previous stage's track.
+
+    Args:
+        stages: the smoothers, in order — a sequence, or a mapping ``name -> smoother`` (its
+            order is the order of application; Hydra configs compose stages by name, e.g.
+            ``conf/smoother/viterbi_kalman.yaml``).
+
+    The returned track's ``filtered`` is the tracker's own estimates (those the first stage
+    received), ``theta`` the last stage's output; ``infos[0]["smoother"]`` is
+    ``{"name": "a+b", "stages": [report of a, report of b]}``. Every stage's ``check`` sees the
+    tracker's inference (a later stage still receives the frames' ``infos``, e.g. the
+    hypotheses a Viterbi stage reads).
+    """
+
+    def __init__(self, stages: Sequence[Smoother] | Mapping[str, Smoother]) -> None:
+        super().__init__()
+        items = list(stages.values()) if isinstance(stages, Mapping) else stages
+        if isinstance(items, (str, bytes)) or not isinstance(items, Sequence) or not items:
+            raise ValueError(f"stages: expected a non-empty sequence or mapping of smoothers, "
+                             f"got {stages!r}")
+        names = (list(stages.keys()) if isinstance(stages, Mapping)
+                 else [str(i) for i in range(len(items))])
+        for name, st in zip(names, items):
+            if not isinstance(st, Smoother):
+                raise TypeError(f"stages[{name!r}]: expected a Smoother, got "
+                                f"{type(st).__name__}")
+            if isinstance(st, SmootherChain):
+                raise TypeError(f"stages[{name!r}]: a chain inside a chain; list its stages "
+                                "instead")
+        self.stages = nn.ModuleList(items)
+
+    def check(self, inference) -> None:
+        for st in self.stages:
+            st.check(inference)
+
+    def smooth(self, track):
+        filtered = track.filtered if track.filtered is not None else track.theta
+        reports = []
+        out = track
+        for st in self.stages:
+            out = st.smooth(out)
+            first = out.infos[0] if out.infos and isinstance(out.infos[0], dict) else {}
+            reports.append(first.get("smoother", {"name": type(st).__name__}))
+        out = type(track)(theta=out.theta, infos=list(out.infos),
+                          seconds_per_frame=out.seconds_per_frame, filtered=filtered)
+        first = out.infos[0] if out.infos and isinstance(out.infos[0], dict) else {}
+        report = {"name": "+".join(str(r.get("name", "?")) for r in reports),
+                  "changed_frames": int((out.theta != filtered).any(-1).sum()),
+                  "stages": reports}
+        if out.infos:
+            out.infos[0] = {**first, "smoother": report}
+        else:
+            out.infos = [{"smoother": report}]
+        return out
