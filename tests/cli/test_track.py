@@ -180,6 +180,28 @@ def test_smoothed_run_reports_the_filtered_errors_beside(tmp_path):
     assert np.mean(best) == pytest.approx(hyp["mpjpe_best_mm"]["mean"], rel=1e-3)
 
 
+def test_chained_smoothers_report_the_errors_after_each_stage(tmp_path):
+    """viterbi_kalman: metrics.json's errors are the last stage's, each stage reports its own
+    (the Viterbi stage's equal a Viterbi-only run's), no per-frame tensors reach the JSON."""
+    common = ["tracker=kjs", "data.clip.frames=5", "tracker.num_particles=24",
+              "tracker.inference.components=3", "progress=false", "overlays=0",
+              "glb.enabled=false"]
+    (tmp_path / "vk").mkdir()
+    (tmp_path / "v").mkdir()
+    m = run(_compose([*common, "+smoother@tracker.smoother=viterbi_kalman"]), tmp_path / "vk")
+    v = run(_compose([*common, "+smoother@tracker.smoother=viterbi"]), tmp_path / "v")
+    sm = m["smoother"]
+    assert sm["name"] == "viterbi+kalman"
+    vit, kal = sm["stages"]
+    assert vit["name"] == "viterbi" and kal["name"] == "kalman" and "dofs" in kal
+    assert "modes" not in vit and "theta" not in vit and "theta" not in kal
+    assert m["filtered"] == v["filtered"]  # the same filter
+    for key in ("orientation_error_deg", "mpjpe_mm", "mpjpe_root_relative_mm"):
+        assert vit["errors"][key] == pytest.approx(v[key]["mean"], rel=1e-6)
+        assert kal["errors"][key] == pytest.approx(m[key]["mean"], rel=1e-6)
+    json.dumps(m)  # plain JSON
+
+
 def test_kalman_smoothed_run_reports_both_and_saves_the_filtered_track(tmp_path, capsys):
     """Any tracker with the Kalman smoother: metrics.json's errors are the smoothed track's
     (recomputed here from track.npz), "filtered" the tracker's own, and the fitted noise."""

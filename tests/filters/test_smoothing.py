@@ -160,6 +160,8 @@ def test_chain_picks_the_modes_then_removes_their_jitter(seed):
     rep = out.infos[0]["smoother"]
     assert rep["name"] == "viterbi+kalman"
     assert [r["name"] for r in rep["stages"]] == ["viterbi", "kalman"]
+    assert torch.equal(rep["stages"][0]["theta"], viterbi.smooth(track).theta)
+    assert torch.equal(rep["stages"][1]["theta"], out.theta)
     assert rep["changed_frames"] == int((out.theta != track.theta).any(-1).sum())
     assert track.infos[0] == {}  # the input track is left as it was
     # the filter is on the mirror branch; Viterbi gets the branch back (the noise stays);
@@ -185,6 +187,7 @@ def test_chain_settings_are_checked_and_named():
     clean = _smoother_report(rep.infos[0]["smoother"])
     assert "modes" in rep.infos[0]["smoother"]["stages"][0]  # the per-frame modes are kept...
     assert "modes" not in clean["stages"][0] and "dofs" in clean["stages"][1]  # ...not in JSON
+    assert all("theta" not in r for r in clean["stages"])
 
 
 @pytest.fixture(scope="module")

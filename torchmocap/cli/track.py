@@ -160,6 +160,14 @@ def finish(cfg, out: Path, seq, runtime, tracker, track, fingerprint: str,
             metrics["filtered"] = {"orientation_error_deg": f["orientation_error_deg"]["mean"],
                                    "mpjpe_mm": f["mpjpe_mm"]["mean"],
                                    "mpjpe_root_relative_mm": f["mpjpe_root_relative_mm"]["mean"]}
+            # a chain of smoothers: the errors after each stage (an ablation in one run)
+            for k, rep in enumerate((smoothing or {}).get("stages") or []):
+                if isinstance(rep, dict) and isinstance(rep.get("theta"), torch.Tensor):
+                    e = _errors(seq, sk, rep["theta"])["summary"]
+                    metrics["smoother"]["stages"][k]["errors"] = {
+                        "orientation_error_deg": e["orientation_error_deg"]["mean"],
+                        "mpjpe_mm": e["mpjpe_mm"]["mean"],
+                        "mpjpe_root_relative_mm": e["mpjpe_root_relative_mm"]["mean"]}
         if seq.ground_truth.markers is not None:
             metrics["marker_error_mm"] = _marker_error(seq, runtime, track.theta)
             if track.filtered is not None:
@@ -215,8 +223,9 @@ def _validate_tracker(cfg) -> None:
 
 def _smoother_report(report: dict) -> dict:
     """A smoother's report for ``metrics.json``: without the per-frame mode indices (kept in
-    ``track.npz``'s hypotheses), also inside the stages of a chain."""
-    out = {k: v for k, v in report.items() if k != "modes"}
+    ``track.npz``'s hypotheses) and a chain stage's output track (``theta``; its errors are
+    reported instead), also inside the stages of a chain."""
+    out = {k: v for k, v in report.items() if k not in ("modes", "theta")}
     if isinstance(out.get("stages"), list):
         out["stages"] = [_smoother_report(r) if isinstance(r, dict) else r
                          for r in out["stages"]]

@@ -192,8 +192,10 @@ class SmootherChain(Smoother):
 
     The returned track's ``filtered`` is the tracker's own estimates (those the first stage
     received), ``theta`` the last stage's output; ``infos[0]["smoother"]`` is
-    ``{"name": "a+b", "stages": [report of a, report of b]}``. Every stage's ``check`` sees the
-    tracker's inference (a later stage still receives the frames' ``infos``, e.g. the
+    ``{"name": "a+b", "stages": [report of a, report of b]}``, each stage's report with its
+    output track under ``theta`` (``torchmocap-track`` writes each stage's errors to
+    ``metrics.json`` instead: an ablation of the stages in one run). Every stage's ``check``
+    sees the tracker's inference (a later stage still receives the frames' ``infos``, e.g. the
     hypotheses a Viterbi stage reads).
     """
 
@@ -225,7 +227,8 @@ class SmootherChain(Smoother):
         for st in self.stages:
             out = st.smooth(out)
             first = out.infos[0] if out.infos and isinstance(out.infos[0], dict) else {}
-            reports.append(first.get("smoother", {"name": type(st).__name__}))
+            reports.append({**first.get("smoother", {"name": type(st).__name__}),
+                            "theta": out.theta})
         out = type(track)(theta=out.theta, infos=list(out.infos),
                           seconds_per_frame=out.seconds_per_frame, filtered=filtered)
         first = out.infos[0] if out.infos and isinstance(out.infos[0], dict) else {}
