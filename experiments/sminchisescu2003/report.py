@@ -19,7 +19,9 @@ plot shows the per-frame MPJPE (from ``track.npz``, else ``mpjpe_mm.per_frame``,
 orientation error's ``per_frame``) of each tracker, averaged over seeds, one panel per clip.
 Runs made with a smoother (``+smoother@tracker.smoother=viterbi``) carry ``filtered``: the table
 then gives the smoothed and the filtered MPJPE side by side (the orientation error and the plot
-are the smoothed track's). ``--runs`` and ``--out`` point elsewhere (e.g. a tiny validation
+are the smoothed track's). Runs made with a chain of smoothers (``smoother=viterbi_kalman``) add
+the root-aligned MPJPE and orientation error after each stage but the last (``after viterbi``:
+the chain's own ablation). ``--runs`` and ``--out`` point elsewhere (e.g. a tiny validation
 sweep).
 """
 
@@ -98,6 +100,14 @@ def summarise(runs: dict) -> dict:
             if all("mpjpe_root_relative_mm" in m["filtered"] for m in ms):
                 row["root_filtered"] = _mean_spread(
                     [m["filtered"]["mpjpe_root_relative_mm"] for m in ms])
+        stages = [(m.get("smoother") or {}).get("stages") for m in ms]
+        if all(isinstance(st, list) and st and all("errors" in x for x in st) for st in stages):
+            # the errors after each stage of a chain but the last (= the top-level errors)
+            row["stages"] = [
+                (stages[0][k]["name"],
+                 _mean_spread([st[k]["errors"]["mpjpe_root_relative_mm"] for st in stages]),
+                 _mean_spread([st[k]["errors"]["orientation_error_deg"] for st in stages]))
+                for k in range(len(stages[0]) - 1)]
         hyp = [m.get("hypotheses") for m in ms]
         if all(isinstance(h, dict) for h in hyp):
             for k in ("mpjpe_top_mm", "mpjpe_best_mm", "mpjpe_root_relative_top_mm",
@@ -126,6 +136,11 @@ def markdown(table: dict, clips, trackers, missing: list[str]) -> str:
         sep += "---:|" + ("---:|" if has_f else "")
     head += " orientation error (deg) |"
     sep += "---:|"
+    stage_names = next((tuple(n for n, _, _ in r["stages"]) for r in table.values()
+                        if r.get("stages")), ())
+    for n in stage_names:
+        head += f" root-aligned after {n} (mm) | orientation error after {n} (deg) |"
+        sep += "---:|---:|"
     if has_h:
         head += " top hypothesis (mm) | best hypothesis (mm) |"
         sep += "---:|---:|"
@@ -154,6 +169,11 @@ def markdown(table: dict, clips, trackers, missing: list[str]) -> str:
                 for k in ("root", "root_filtered")[: 2 if has_f else 1]:
                     cells.append(f"{r[k][0]:.1f} ± {r[k][1]:.1f}" if k in r else "–")
             cells.append(f"{r['ori'][0]:.2f} ± {r['ori'][1]:.2f}")
+            st = {n: (a, o) for n, a, o in r.get("stages", [])}
+            for n in stage_names:
+                a, o = st.get(n, (None, None))
+                cells += [f"{a[0]:.1f} ± {a[1]:.1f}" if a else "–",
+                          f"{o[0]:.2f} ± {o[1]:.2f}" if o else "–"]
             if has_h:
                 keys = ["mpjpe_top_mm", "mpjpe_best_mm"]
                 keys += ["mpjpe_root_relative_best_mm"] if has_r else []
