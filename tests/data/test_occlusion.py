@@ -82,10 +82,30 @@ class TestJointOcclusion:
             joint_occlusion(pos, _wall(0.0), f, part, [-1], rig)
         with pytest.raises(ValueError, match="margin"):
             joint_occlusion(pos, _wall(0.0), f, part, [-1, 0], rig, margin=-1.0)
-        mixed = make_ring_rig(2).float()
-        mixed.image_size[1] = torch.tensor([160, 120]).to(mixed.image_size)
-        with pytest.raises(ValueError, match="same image size"):
-            joint_occlusion(pos, _wall(0.0), f, part, [-1, 0], mixed)
+
+    def test_feature_cameras_of_different_image_sizes(self):
+        """A rig mixing 320x240 and 160x120 cameras answers, per camera, what a rig of that
+        camera alone answers."""
+        from torchmocap.cameras import CameraRig
+
+        sk = human31()
+        g = torch.Generator().manual_seed(1)
+        th = sk.zero_pose((12,))
+        th[:, 6:] = 0.8 * torch.randn(12, sk.num_dofs - 6, generator=g, dtype=th.dtype)
+        th = sk.clamp(th)
+        full = make_ring_rig(4, image_size=(320, 240)).float()
+        half = full.scaled_images(0.5)
+        pick = [full, half, full, half]
+        mixed = CameraRig(torch.stack([r.K[c] for c, r in enumerate(pick)]), full.R, full.t,
+                          torch.stack([r.image_size[c] for c, r in enumerate(pick)]))
+        surf = body_surface(sk.float(), th.float(), "capsules")
+        pos = sk(th).positions.float()
+        args = (pos, surf.vertices, surf.faces, surf.face_part, sk.parents)
+        got = joint_occlusion(*args, mixed)
+        for c, r in enumerate(pick):
+            alone = joint_occlusion(*args, r.subset([c]))[:, 0]
+            assert torch.equal(got[:, c], alone), c
+            assert bool(alone.any())  # not a vacuous comparison
 
 
 class TestDetectorOnHiddenJoints:

@@ -73,13 +73,24 @@ def joint_occlusion(positions: Tensor, vertices: Tensor, faces: Tensor, face_par
         raise ValueError(f"margin: expected a number >= 0 (metres), got {margin!r}")
     T, J = positions.shape[:2]
     C = rig.num_cameras
-    sizes = rig.image_size.reshape(-1, 2)
-    if bool((sizes != sizes[0]).any()):
-        raise ValueError(f"rig: every camera must have the same image size, got "
-                         f"{sizes.tolist()}")
-    W, H = (int(x) for x in sizes[0].tolist())
+    sizes = [tuple(int(x) for x in s) for s in rig.image_size.reshape(-1, 2).tolist()]
     out = torch.zeros(T, C, J, dtype=torch.bool)
     own = torch.cat([own_parts(parents), torch.zeros(J, 1, dtype=torch.bool)], 1)  # +no part
+    # cameras of one image size are rasterised together (a rig may mix sizes)
+    for size in dict.fromkeys(sizes):
+        cams = [c for c, s in enumerate(sizes) if s == size]
+        sub = rig if len(cams) == C else rig.subset(cams)
+        out[:, cams] = _occluded(positions, vertices, faces, face_part, own, sub, size,
+                                 margin, chunk_frames)
+    return out
+
+
+def _occluded(positions, vertices, faces, face_part, own, rig, size, margin, chunk_frames):
+    """:func:`joint_occlusion` for a rig whose cameras share the image ``size`` ``(W, H)``."""
+    T, J = positions.shape[:2]
+    C = rig.num_cameras
+    W, H = size
+    out = torch.zeros(T, C, J, dtype=torch.bool)
     with torch.no_grad():
         for a in range(0, T, max(1, int(chunk_frames))):
             b = min(T, a + max(1, int(chunk_frames)))
