@@ -114,8 +114,11 @@ def test_fit_recovers_the_simulated_noise(seed):
     assert 0.8 < math.sqrt(float(rh[0]) / r) < 1.25
     assert 0.7 < math.sqrt(float(qh[0]) / q) < 1.4
     # per column: noisier but around the truth
-    rc, qc, _ = fit_cv_noise(y, grid, grid)
+    rc, qc, ll = fit_cv_noise(y, grid, grid)
     assert 0.7 < math.sqrt(float(rc.median()) / r) < 1.4
+    # the grid's log-likelihood is the smoother's at the chosen variances (the grid pass keeps
+    # no per-frame moments; it must not change the value)
+    assert torch.allclose(ll, cv_kalman_smoother(y, rc, qc)[1], rtol=0, atol=1e-9)
 
 
 def test_unwrap_angles_removes_two_pi_jumps():

@@ -70,10 +70,12 @@ def unwrap_angles(theta: torch.Tensor) -> torch.Tensor:
     return torch.cat([theta[:1], theta[:1] + torch.cumsum(d, 0)])
 
 
-def _forward(y: torch.Tensor, r: torch.Tensor, q: torch.Tensor):
+def _forward(y: torch.Tensor, r: torch.Tensor, q: torch.Tensor, keep: bool = True):
     """Kalman filter of the constant-velocity model, batched over ``y (T, ...)``'s trailing
     dimensions (``r``, ``q`` broadcast against them). Returns the filtered and predicted
-    moments (lists over t) and the log-likelihood of the innovations of frames 2..T-1."""
+    moments (lists over t; ``None`` with ``keep=False``, which needs memory for one step only:
+    the likelihood grid of a long clip) and the log-likelihood of the innovations of frames
+    2..T-1."""
     T = y.shape[0]
     shape = torch.broadcast_shapes(y.shape[1:], r.shape, q.shape)
     y = y.expand(T, *shape)
@@ -81,15 +83,16 @@ def _forward(y: torch.Tensor, r: torch.Tensor, q: torch.Tensor):
     # frame 0 known exactly; the velocity diffuse
     m0, m1 = y[0].clone(), zero.clone()
     p00, p01, p11 = zero.clone(), zero.clone(), zero + _DIFFUSE
-    filt = [(m0, m1, p00, p01, p11)]
-    pred = [None]
+    filt = [(m0, m1, p00, p01, p11)] if keep else None
+    pred = [None] if keep else None
     loglik = zero.clone()
     for t in range(1, T):
         a0, a1 = m0 + m1, m1
         b00 = p00 + 2 * p01 + p11 + q / 3
         b01 = p01 + p11 + q / 2
         b11 = p11 + q
-        pred.append((a0, a1, b00, b01, b11))
+        if keep:
+            pred.append((a0, a1, b00, b01, b11))
         s = b00 + r
         e = y[t] - a0
         k0, k1 = b00 / s, b01 / s
@@ -97,7 +100,8 @@ def _forward(y: torch.Tensor, r: torch.Tensor, q: torch.Tensor):
         p00, p01, p11 = b00 - k0 * b00, b01 - k0 * b01, b11 - k1 * b01
         if t >= 2:  # the first innovation only resolves the diffuse velocity
             loglik = loglik - 0.5 * (torch.log(2 * math.pi * s) + e * e / s)
-        filt.append((m0, m1, p00, p01, p11))
+        if keep:
+            filt.append((m0, m1, p00, p01, p11))
     return filt, pred, loglik
 
 
@@ -156,7 +160,7 @@ def fit_cv_noise(y: torch.Tensor, r_grid: torch.Tensor, q_grid: torch.Tensor,
         raise ValueError(f"y: expected (T >= 3, N), got {tuple(y.shape)}")
     rr, qq = torch.meshgrid(r_grid.to(y), q_grid.to(y), indexing="ij")
     rr, qq = rr.reshape(-1, 1), qq.reshape(-1, 1)  # (G, 1) against the columns
-    _, _, ll = _forward(y[:, None, :], rr, qq)  # (G, N)
+    _, _, ll = _forward(y[:, None, :], rr, qq, keep=False)  # (G, N)
     best = ll.sum(1).argmax().expand(y.shape[1]) if shared else ll.argmax(0)
     cols = torch.arange(y.shape[1], device=y.device)
     return rr[best, 0], qq[best, 0], ll[best, cols]
