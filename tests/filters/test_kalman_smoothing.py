@@ -76,6 +76,43 @@ def test_smoother_mean_is_the_batch_least_squares_solution(seed):
     assert xs[0, 0] == y[0, 0]
 
 
+@pytest.mark.parametrize("lag", [0, 1, 4, 12])
+def test_fixed_lag_is_the_smoother_of_the_series_up_to_t_plus_lag(lag):
+    """Frame t of the fixed-lag smoother equals the fixed-interval smoother of y[0 .. t + L]
+    at t (independently: the dense batch solution of that prefix); lag 0 is the filter."""
+    g = torch.Generator().manual_seed(lag)
+    T, r, q = 16, 0.05 ** 2, 0.01 ** 2
+    y, _ = _simulate(T, 2, r, q, g)
+    x, ll = cv_kalman_smoother(y, r, q, lag=lag)
+    assert torch.equal(ll, cv_kalman_smoother(y, r, q)[1])
+    for col in range(2):
+        ref = torch.stack([y[0, col]] + [  # frame 0 is exact
+            _batch_least_squares(y[:min(t + lag, T - 1) + 1, col], r, q)[t]
+            for t in range(1, T)])
+        assert torch.allclose(x[:, col], ref, atol=1e-6), (lag, col)  # diffuse v_0: 1e8
+    if lag >= T - 1:
+        assert torch.equal(x, cv_kalman_smoother(y, r, q)[0])
+
+
+def test_a_longer_lag_is_closer_to_the_truth():
+    """On simulated data, each extra frame of look-ahead helps (means over 200 series), and a
+    few frames recover most of what the whole clip gives."""
+    g = torch.Generator().manual_seed(0)
+    r, q = 0.03 ** 2, 0.002 ** 2
+    y, x = _simulate(120, 200, r, q, g)
+    err = {L: float((cv_kalman_smoother(y, r, q, lag=L)[0] - x)[1:].pow(2).mean().sqrt())
+           for L in (0, 1, 2, 4, 8, None)}
+    raw = float((y - x)[1:].pow(2).mean().sqrt())
+    assert raw > err[0] > err[1] > err[2] > err[4] > err[8] >= err[None] - 1e-12
+    assert err[8] - err[None] < 0.15 * (err[0] - err[None])
+    sm = KalmanSmoother(measurement_std_deg=math.degrees(0.03),
+                        acceleration_std_deg=math.degrees(0.002), lag=2)
+    out, info = sm.smooth_theta(y.float())
+    assert info["lag"] == 2 and "lag=2" in repr(sm)
+    d = out.double()[1:] - cv_kalman_smoother(y, r, q, lag=2)[0][1:]
+    assert float((torch.remainder(d + math.pi, 2 * math.pi) - math.pi).abs().max()) < 2e-6
+
+
 def test_log_likelihood_is_the_gaussian_density_of_frames_2_on_given_frame_1():
     """Explicit joint Gaussian of y_1..y_{T-1} (x_0 known, v_0 diffuse), conditioned on y_1."""
     g = torch.Generator().manual_seed(3)
@@ -285,6 +322,9 @@ def test_smooth_keeps_the_filtered_track_and_reports():
     ({"clamp_limits": 1}, "clamp_limits"),
     ({"per_dof": "yes"}, "per_dof"),
     ({"rotations": "euler"}, "rotations"),
+    ({"lag": -1}, "lag"),
+    ({"lag": 2.5}, "lag"),
+    ({"lag": True}, "lag"),
 ])
 def test_bad_settings_are_named(kwargs, match):
     with pytest.raises(ValueError, match=match):

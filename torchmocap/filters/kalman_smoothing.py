@@ -36,6 +36,8 @@ joints) are unwrapped over time (a heading crossing ±π is not a 2π jump) and 
 ``(-π, π]``; DoFs with limits are clamped into them (the smoother's weights can overshoot at a
 limit) and the clamped values are counted.
 
+``lag=L`` makes it a fixed-lag smoother: frame ``t`` sees the estimates up to ``t + L`` only.
+
 The smoother sees the future: compare it with other smoothers, not with filters (the tracker's
 ``Track.filtered`` keeps the filtered estimates, ``metrics.json`` reports them under
 ``filtered``). Functional core: :func:`cv_kalman_smoother`, :func:`fit_cv_noise`; module:
@@ -105,13 +107,41 @@ def _forward(y: torch.Tensor, r: torch.Tensor, q: torch.Tensor, keep: bool = Tru
     return filt, pred, loglik
 
 
-def cv_kalman_smoother(y: torch.Tensor, r, q) -> tuple[torch.Tensor, torch.Tensor]:
+def _rts_step(f, p, xs, vs):
+    """One Rauch–Tung–Striebel step: the smoothed ``(x, v)`` at ``t`` from those at ``t + 1``,
+    the filtered moments ``f`` at ``t`` and the predicted moments ``p`` at ``t + 1``."""
+    m0, m1, p00, p01, p11 = f
+    a0, a1, b00, b01, b11 = p
+    # C = P_t F^T (P'_{t+1})^-1; P_t F^T = [[p00 + p01, p01], [p01 + p11, p11]]
+    det = b00 * b11 - b01 * b01
+    i00, i01, i11 = b11 / det, -b01 / det, b00 / det
+    u00, u01, u10, u11 = p00 + p01, p01, p01 + p11, p11
+    c00, c01 = u00 * i00 + u01 * i01, u00 * i01 + u01 * i11
+    c10, c11 = u10 * i00 + u11 * i01, u10 * i01 + u11 * i11
+    d0, d1 = xs - a0, vs - a1
+    return m0 + c00 * d0 + c01 * d1, m1 + c10 * d0 + c11 * d1
+
+
+def _check_lag(lag) -> int | None:
+    if lag is None:
+        return None
+    if isinstance(lag, bool) or not isinstance(lag, int) or lag < 0:
+        raise ValueError(f"lag: expected an int >= 0 (frames) or None (the whole clip), "
+                         f"got {lag!r}")
+    return lag
+
+
+def cv_kalman_smoother(y: torch.Tensor, r, q, lag: int | None = None
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
     """Rauch–Tung–Striebel smoother of the constant-velocity model for every column of ``y``.
 
     Args:
         y: ``(T, ...)`` observations (frame 0 is taken as exact).
         r: observation variance, broadcastable to ``y.shape[1:]`` (> 0).
         q: white-noise acceleration spectral density per frame³, broadcastable likewise (> 0).
+        lag: ``None`` (default): fixed-interval smoothing, every frame from the whole series;
+            ``L >= 0``: fixed-lag smoothing, frame ``t`` from ``y[0 .. t + L]`` only (what an
+            online tracker delayed by ``L`` frames can report; ``0`` is the Kalman filter).
 
     Returns:
         ``(x (T, ...), loglik (...))``: the smoothed values and the log-likelihood of the
@@ -120,27 +150,40 @@ def cv_kalman_smoother(y: torch.Tensor, r, q) -> tuple[torch.Tensor, torch.Tenso
     if y.dim() < 1 or y.shape[0] < 1 or not bool(torch.isfinite(y).all()):
         raise ValueError(f"y: expected finite observations (T >= 1, ...), got shape "
                          f"{tuple(y.shape)}")
+    lag = _check_lag(lag)
     r = torch.as_tensor(r, dtype=y.dtype, device=y.device)
     q = torch.as_tensor(q, dtype=y.dtype, device=y.device)
     if not bool((r > 0).all()) or not bool((q > 0).all()):
         raise ValueError("r, q: expected variances > 0")
     filt, pred, loglik = _forward(y, r, q)
     T = y.shape[0]
+    if lag is not None and lag < T - 1:
+        return _fixed_lag(filt, pred, lag), loglik
     xs, vs = filt[-1][0], filt[-1][1]
     out = [xs]
     for t in range(T - 2, -1, -1):
-        m0, m1, p00, p01, p11 = filt[t]
-        a0, a1, b00, b01, b11 = pred[t + 1]
-        # C = P_t F^T (P'_{t+1})^-1; P_t F^T = [[p00 + p01, p01], [p01 + p11, p11]]
-        det = b00 * b11 - b01 * b01
-        i00, i01, i11 = b11 / det, -b01 / det, b00 / det
-        u00, u01, u10, u11 = p00 + p01, p01, p01 + p11, p11
-        c00, c01 = u00 * i00 + u01 * i01, u00 * i01 + u01 * i11
-        c10, c11 = u10 * i00 + u11 * i01, u10 * i01 + u11 * i11
-        d0, d1 = xs - a0, vs - a1
-        xs, vs = m0 + c00 * d0 + c01 * d1, m1 + c10 * d0 + c11 * d1
+        xs, vs = _rts_step(filt[t], pred[t + 1], xs, vs)
         out.append(xs)
     return torch.stack(out[::-1]), loglik
+
+
+def _fixed_lag(filt, pred, lag: int) -> torch.Tensor:
+    """Fixed-lag smoothed values ``(T, ...)``: for every frame ``t`` at once, the RTS pass from
+    the filtered state at ``e = min(t + lag, T - 1)`` back to ``t`` (``lag`` vectorised steps)."""
+    T = len(filt)
+    f_all = [torch.stack([f[i] for f in filt]) for i in range(5)]  # (T, ...) each
+    p_all = [torch.stack([pred[max(t, 1)][i] for t in range(T)]) for i in range(5)]
+    t_idx = torch.arange(T, device=f_all[0].device)
+    end = (t_idx + lag).clamp(max=T - 1)
+    xs, vs = f_all[0][end], f_all[1][end]
+    shape = (T,) + (1,) * (xs.dim() - 1)
+    for k in range(1, lag + 1):
+        j = end - k  # the step each frame's pass is at (<= T - 2); done once j < t
+        active = (j >= t_idx).view(shape)
+        jj = j.clamp(min=0)
+        nx, nv = _rts_step([a[jj] for a in f_all], [a[jj + 1] for a in p_all], xs, vs)
+        xs, vs = torch.where(active, nx, xs), torch.where(active, nv, vs)
+    return xs
 
 
 def fit_cv_noise(y: torch.Tensor, r_grid: torch.Tensor, q_grid: torch.Tensor,
@@ -201,6 +244,10 @@ class KalmanSmoother(Smoother):
         rotations: ``"so3"`` (default): 3-axis joints smoothed as rotations (quaternions), the
             other rotation DoFs as angles; ``"angles"``: every rotation DoF as an angle. Without
             a skeleton every DoF is an angle.
+        lag: ``None`` (default): every frame smoothed from the whole clip; ``L >= 0`` frames:
+            frame ``t`` from the estimates up to ``t + L`` only (fixed-lag: what a tracker
+            reporting ``L`` frames late could give; ``0`` = the Kalman filter of the
+            estimates). The noise is still estimated from the whole track.
 
     ``smooth(track)`` returns the track with ``theta`` smoothed and ``filtered`` the tracker's
     estimates; ``infos[0]["smoother"]`` reports the fitted stds per DoF (``dofs``), their
@@ -215,7 +262,7 @@ class KalmanSmoother(Smoother):
                  translation_measurement_std: float | None = None,
                  translation_acceleration_std: float | None = None,
                  grid_size: int = 33, clamp_limits: bool = True, per_dof: bool = False,
-                 rotations: str = "so3") -> None:
+                 rotations: str = "so3", lag: int | None = None) -> None:
         super().__init__()
         self.measurement_std_deg = _std_or_none("measurement_std_deg", measurement_std_deg)
         self.acceleration_std_deg = _std_or_none("acceleration_std_deg", acceleration_std_deg)
@@ -232,6 +279,7 @@ class KalmanSmoother(Smoother):
         if rotations not in ROTATIONS:
             raise ValueError(f"rotations: expected one of {ROTATIONS}, got {rotations!r}")
         self.rotations = rotations
+        self.lag = _check_lag(lag)
         # what is read of the skeleton (not the module itself: the tracker owns it)
         self.ball_groups = [] if skeleton is None else skeleton_rotation_groups(
             skeleton, [n for n, a in zip(skeleton.joint_names, skeleton.joint_axes)
@@ -312,7 +360,7 @@ class KalmanSmoother(Smoother):
             if bool(active.any()):
                 ra, qa, ll = fit_cv_noise(yg[:, active], *self._grids(kind),
                                           shared=not self.per_dof)
-                xs[:, active] = cv_kalman_smoother(yg[:, active], ra, qa)[0]
+                xs[:, active] = cv_kalman_smoother(yg[:, active], ra, qa, lag=self.lag)[0]
                 r[active], q[active] = ra, qa
                 loglik += float(ll.sum())
             if kind == "so3":
@@ -364,6 +412,7 @@ class KalmanSmoother(Smoother):
             "acceleration_std_deg_median": round(float(q_all[rot_moved].median()), 4)
             if rot_moved else None,
             "log_likelihood": round(loglik, 3),
+            "lag": self.lag,
             "clamped": clamped,
             "held_dofs": int((~moved).sum()),
             "dofs": {names[d]: {"measurement_std": round(float(r_all[d]), 4),
@@ -392,4 +441,5 @@ class KalmanSmoother(Smoother):
                 f"acceleration_std_deg={s(self.acceleration_std_deg)}, "
                 f"translation=({s(self.translation_measurement_std)}, "
                 f"{s(self.translation_acceleration_std)}), grid_size={self.grid_size}"
-                f"{', per_dof=True' if self.per_dof else ''}")
+                f"{', per_dof=True' if self.per_dof else ''}"
+                f"{'' if self.lag is None else f', lag={self.lag}'}")
