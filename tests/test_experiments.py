@@ -97,6 +97,15 @@ def test_every_experiment_config_runs_for_three_frames(name, tmp_path, shared_da
         assert r.returncode == 0, r.stderr[-3000:]
         md = (tmp_path / "out" / "kalman.md").read_text()
         assert all(f"`{tracker_config(t).name}` | mean |" in md for t in trackers), md
+    if name == "smoothing/kalman":  # so does the fixed-lag table
+        r = subprocess.run([sys.executable, str(ROOT / "experiments" / "smoothing" / "lag.py"),
+                            "--runs", str(sweep), "--out", str(tmp_path / "out")],
+                           capture_output=True, text=True, timeout=300, env=env, cwd=ROOT)
+        assert r.returncode == 0, r.stderr[-3000:]
+        md = (tmp_path / "out" / "lag.md").read_text()
+        assert "| filtered | lag 0 | lag 1 | lag 2 | lag 5 | whole clip |" in md, md
+        assert all(f"| `{tracker_config(t).name}` | {n_jobs} |" in md for t in trackers), md
+        assert (tmp_path / "out" / "lag.png").stat().st_size > 0
     if frames == 1:  # the real frame's report reads these runs
         r = subprocess.run([sys.executable, str(ROOT / "experiments" / "hauberg2011" / "report.py"),
                             "bodytrack", "--runs", str(sweep), "--out", str(tmp_path / "out")],
