@@ -60,13 +60,11 @@ def main(argv=None) -> int:
     ap.add_argument("--runs", type=Path, default=HERE / "runs" / "lag")
     ap.add_argument("--out", type=Path, default=HERE / "results")
     args = ap.parse_args(argv)
-    runs = sorted(p.parent for p in args.runs.glob("*/*/*/seed*/track.npz"))
-    if not runs:
-        print(f"lag: no track.npz under {args.runs} (run the sweep first)", file=sys.stderr)
+    from variants import group_runs  # this directory's sibling script
+
+    groups = group_runs(args.runs, evaluate, "lag")
+    if groups is None:
         return 2
-    groups: dict[tuple[str, str], list[dict]] = {}
-    for r in runs:
-        groups.setdefault((r.parts[-4], r.parts[-2]), []).append(evaluate(r))
     cols = ["filtered"] + [column(lag) for lag in LAGS]
     lines = ["# Fixed-lag smoothing of the same filtered tracks", "",
              "MPJPE (mm) / validation orientation error (deg), frames 1..T-1, mean over the runs "

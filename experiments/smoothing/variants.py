@@ -65,18 +65,28 @@ def evaluate(run: Path) -> dict:
             "moving average 1-2-3-2-1": mpjpe(sk.clamp(moving_average(filt)))}
 
 
+def group_runs(runs_dir: Path, evaluate, script: str) -> dict | None:
+    """``{(scenario, tracker): [evaluate(run), ...]}`` over the runs of a smoothing sweep
+    (``<scenario>/<clip>/<tracker>/seed<s>/track.npz``); ``None`` (and a message naming
+    ``script``) when there are none."""
+    runs = sorted(p.parent for p in runs_dir.glob("*/*/*/seed*/track.npz"))
+    if not runs:
+        print(f"{script}: no track.npz under {runs_dir} (run the sweep first)", file=sys.stderr)
+        return None
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for r in runs:
+        groups.setdefault((r.parts[-4], r.parts[-2]), []).append(evaluate(r))
+    return groups
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", type=Path, default=HERE / "runs" / "kalman")
     ap.add_argument("--out", type=Path, default=HERE / "results")
     args = ap.parse_args(argv)
-    runs = sorted(p.parent for p in args.runs.glob("*/*/*/seed*/track.npz"))
-    if not runs:
-        print(f"variants: no track.npz under {args.runs} (run the sweep first)", file=sys.stderr)
+    groups = group_runs(args.runs, evaluate, "variants")
+    if groups is None:
         return 2
-    groups: dict[tuple[str, str], list[dict]] = {}
-    for r in runs:
-        groups.setdefault((r.parts[-4], r.parts[-2]), []).append(evaluate(r))
     lines = ["# Smoother variants on the same filtered tracks", "",
              "MPJPE (mm), frames 1..T-1, mean over the runs (clips) of each scenario and "
              "tracker; `experiments/smoothing/variants.py`.", "",
