@@ -35,9 +35,14 @@ PRESETS = [
     ("kjs", "monocular", ["tracker.num_particles=16", "+smoother@tracker.smoother=viterbi"]),
     ("p", "studio", ["tracker.num_particles=32", "tracker.inference.layers=3",
                      "+smoother@tracker.smoother=kalman"]),
+    ("kjs", "monocular", ["tracker.num_particles=16",
+                          "+smoother@tracker.smoother=viterbi_kalman"]),
+    ("p", "studio", ["tracker.num_particles=32", "tracker.inference.layers=3",
+                     "+smoother@tracker.smoother=kalman", "tracker.smoother.lag=1"]),
 ]
 IDS = ["p", "g", "gs", "rs", "p_sir", "ls", "p_prior_refined", "hauberg_spatial",
-       "hauberg_silhouette", "hauberg_depth", "kjs", "kjs_viterbi", "p_kalman"]
+       "hauberg_silhouette", "hauberg_depth", "kjs", "kjs_viterbi", "p_kalman",
+       "kjs_viterbi_kalman", "p_kalman_lag"]
 
 
 @pytest.fixture(scope="module")
