@@ -160,14 +160,17 @@ def finish(cfg, out: Path, seq, runtime, tracker, track, fingerprint: str,
             metrics["filtered"] = {"orientation_error_deg": f["orientation_error_deg"]["mean"],
                                    "mpjpe_mm": f["mpjpe_mm"]["mean"],
                                    "mpjpe_root_relative_mm": f["mpjpe_root_relative_mm"]["mean"]}
-            # a chain of smoothers: the errors after each stage (an ablation in one run)
-            for k, rep in enumerate((smoothing or {}).get("stages") or []):
-                if isinstance(rep, dict) and isinstance(rep.get("theta"), torch.Tensor):
-                    e = _errors(seq, sk, rep["theta"])["summary"]
-                    metrics["smoother"]["stages"][k]["errors"] = {
-                        "orientation_error_deg": e["orientation_error_deg"]["mean"],
-                        "mpjpe_mm": e["mpjpe_mm"]["mean"],
-                        "mpjpe_root_relative_mm": e["mpjpe_root_relative_mm"]["mean"]}
+            # a chain of smoothers: the errors after each stage (an ablation in one run); the
+            # last stage's are the top-level ones
+            stages = (smoothing or {}).get("stages") or []
+            for k, rep in enumerate(stages):
+                if not (isinstance(rep, dict) and isinstance(rep.get("theta"), torch.Tensor)):
+                    continue
+                e = (metrics if k == len(stages) - 1
+                     else _errors(seq, sk, rep["theta"].cpu())["summary"])
+                metrics["smoother"]["stages"][k]["errors"] = {
+                    key: e[key]["mean"] for key in ("orientation_error_deg", "mpjpe_mm",
+                                                    "mpjpe_root_relative_mm")}
         if seq.ground_truth.markers is not None:
             metrics["marker_error_mm"] = _marker_error(seq, runtime, track.theta)
             if track.filtered is not None:
