@@ -6,8 +6,12 @@ lockstep and, whenever each of them asks for the energy of its ``P`` particles, 
 particles are evaluated in one call of the frame's energy. Everything else — proposals,
 selection, annealing schedules, estimates, the per-track random generator — stays per track and
 is the unmodified code of the tracker's own components, so the weights of a track are normalised
-and resampled among its own particles only, and **track ``b`` is the track a separate run with
-seed ``b`` gives** (equal up to the last bits of float rounding; the tests check it).
+and resampled among its own particles only, and **track ``b`` follows the arithmetic of the separate
+run with seed ``b``** except for the energy call itself: a call on ``B x P`` rows may round the
+last bit of a row differently than one on ``P`` rows (kernels chosen by batch size and CPU).
+Each energy equals the separate run's to float rounding, so tracks agree on short horizons and
+are statistically equivalent; over many frames a particle tracker amplifies the rounding (the
+local descent of the refined presets most), so bit-identical tracks are not promised.
 
 How: each track's :meth:`~torchmocap.filters.Tracker.step` runs as a cooperative task in its own
 thread; exactly one task runs at a time (no data race, no extra CPU use: the threads take turns,
