@@ -1,8 +1,9 @@
 """Batched tracking (torchmocap.filters.batched): the lockstep scheduler batches the tasks'
 energy requests and keeps errors where they belong; a seed's energies inside a batch equal its
 energies alone (to float rounding), so B seeds tracked in one batch agree with the B separate
-runs on a short horizon (tracker P: nothing amplifies the last bits); groups do not leak into each other (a corrupted sequence beside a clean one
-leaves the clean tracks as they are alone); invalid groupings are refused."""
+runs on a short horizon (tracker P: nothing amplifies the last bits); groups do not leak into
+each other (a corrupted sequence beside a clean one leaves the clean tracks as they are alone);
+invalid groupings are refused."""
 
 from __future__ import annotations
 
