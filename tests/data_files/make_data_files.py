@@ -10,7 +10,11 @@ What it writes (see README.md here for provenance and licences):
 * ``multiview/bodytrack_sequenceB_1/``: the four calibrations whole, the grey images and
   foreground masks of frame 0 losslessly as PNG (``image0000.png``; the BMPs are 4x larger);
 * ``body/makehuman_cc0/``: the CC0 MakeHuman mesh, weights and rig, xz-compressed
-  (``*.xz``; ``tests/body/conftest.py`` unpacks them into a temporary folder).
+  (``*.xz``; ``tests/body/conftest.py`` unpacks them into a temporary folder);
+* ``multiview/pose2sim_balancing/``: the calibration and licence whole, the OpenPose JSON files
+  (raw and associated) of frames 0-9, the first 10 frames of every video (the compressed
+  stream copied, not re-encoded: the decoded pixels are the original's), the background plates
+  as JPEG (quality 88, full size) and the first 10 frames of Pose2Sim's raw TRC output.
 
 The windows are chosen for what the tests read: e.g. frames 440-559 of ``131_01.bvh`` (mid
 walk), 121 frames of ``01_01.bvh`` (its synthetic T-pose frame 0 and one second of data, the
@@ -102,11 +106,55 @@ def build(shared: Path, out: Path) -> None:
             lzma.compress((body / name).read_bytes(), preset=9 | lzma.PRESET_EXTREME))
 
 
+#: frames of the pose2sim_balancing recording kept (0..POSE2SIM_FRAMES-1)
+POSE2SIM_FRAMES = 10
+
+
+def _ffmpeg() -> str:
+    import imageio_ffmpeg
+
+    return imageio_ffmpeg.get_ffmpeg_exe()
+
+
+def build_pose2sim(shared: Path, out: Path) -> None:
+    import subprocess
+
+    from PIL import Image
+
+    src = shared / "multiview" / "pose2sim_balancing"
+    dst = out / "multiview" / "pose2sim_balancing"
+    for sub in ("calibration", "videos", "background", "pose2sim_output"):
+        (dst / sub).mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(src / "LICENSE", dst / "LICENSE")
+    shutil.copyfile(src / "calibration" / "Calib.toml", dst / "calibration" / "Calib.toml")
+    for kind in ("pose", "pose-associated"):
+        for cam in sorted((src / kind).iterdir()):
+            (dst / kind / cam.name).mkdir(parents=True, exist_ok=True)
+            for f in sorted(cam.glob("*.json"))[:POSE2SIM_FRAMES]:
+                shutil.copyfile(f, dst / kind / cam.name / f.name)
+    for video in sorted((src / "videos").glob("*.mp4")):
+        subprocess.run([_ffmpeg(), "-y", "-loglevel", "error", "-i", str(video), "-c", "copy",
+                        "-frames:v", str(POSE2SIM_FRAMES), str(dst / "videos" / video.name)],
+                       check=True)
+    for plate in sorted((src / "background").glob("*.png")):
+        with Image.open(plate) as im:
+            im.convert("RGB").save(dst / "background" / f"{plate.stem}.jpg", quality=88)
+    trc = src / "pose2sim_output" / "S00_P00_T01_BalancingTrial_0-100.trc"
+    lines = trc.read_bytes().splitlines(keepends=True)
+    head, rows = lines[:5], [r for r in lines[5:] if r.strip()][:POSE2SIM_FRAMES]
+    fields = head[2].split(b"\t")
+    fields[2] = fields[7] = str(POSE2SIM_FRAMES).encode()  # NumFrames, OrigNumFrames
+    head[2] = b"\t".join(fields[:7]) + b"\t" + fields[7].strip() + \
+        (b"\r\n" if head[2].endswith(b"\r\n") else b"\n")
+    (dst / "pose2sim_output" / trc.name).write_bytes(b"".join(head + rows))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--shared", type=Path, default=DEFAULT_SHARED)
     args = ap.parse_args()
     build(args.shared, HERE)
+    build_pose2sim(args.shared, HERE)
     total = sum(p.stat().st_size for p in HERE.rglob("*") if p.is_file())
     print(f"tests/data_files: {total / 1e6:.2f} MB")
 

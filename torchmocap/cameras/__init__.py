@@ -28,6 +28,7 @@ from torchmocap.cameras.rig import (
     make_ceiling_rig,
     make_ring_rig,
 )
+from torchmocap.cameras.triangulation import triangulate_dlt
 
 __all__ = [
     "UNITS",
@@ -51,6 +52,7 @@ __all__ = [
     "read_rig",
     "rig_from_dict",
     "rig_to_dict",
+    "triangulate_dlt",
     "visual_hull",
     "world_to_camera",
     "write_rig",
