@@ -154,5 +154,5 @@ def test_tracker_run_callbacks():
                        Runtime.from_sequence(seq))
     seen = []
     tr.run(seq, progress=False, callbacks=[lambda st, info: seen.append((st.frame,
-                                                                         info["frame"]))])
+                                                                         info.frame))])
     assert seen == [(1, 1), (2, 2)]

@@ -64,7 +64,7 @@ def main() -> None:
             if r == 0:
                 continue  # warm-up
             times[name].append(dt)
-            props[name].append(sum(float(i.get("proposal", {}).get("seconds", 0.0))
+            props[name].append(sum(float(i.proposal.get("seconds", 0.0))
                                    for i in track.infos[1:]) / args.frames)
     base = times[PRESETS[0]]
     for name in PRESETS:

@@ -173,7 +173,7 @@ def run(args) -> dict:
     for kind, scale, tails in RANDOM_ROWS:
         prop = CovarianceScaledProposal(sk, scale=scale, tails=tails, spherical=kind == "SS")
         t0 = time.perf_counter()
-        x0 = prop.sample(ProposalContext(previous=mu, extras={"covariances": Sigma}),
+        x0 = prop.sample(ProposalContext(previous=mu, covariances=Sigma),
                          args.samples, g).particles
         name = f"{kind} {scale:g}" + ("/HT" if tails == "cauchy" else "")
         rows.append(stats(name, x0, time.perf_counter() - t0))

@@ -33,7 +33,7 @@ def evaluate(run: Path, lags=LAGS) -> dict:
     from omegaconf import OmegaConf
 
     from torchmocap.cli.runs import load_sequence
-    from torchmocap.cli.track import _errors
+    from torchmocap.evaluation import track_errors
     from torchmocap.filters import KalmanSmoother
 
     cfg = OmegaConf.load(run / ".hydra" / "config.yaml")
@@ -42,7 +42,7 @@ def evaluate(run: Path, lags=LAGS) -> dict:
     filt = torch.as_tensor(np.load(run / "track.npz")["theta_filtered"], dtype=torch.float32)
 
     def errors(theta):
-        e = _errors(seq, sk, theta)["summary"]
+        e = track_errors(seq, sk, theta)["summary"]
         return e["mpjpe_mm"]["mean"], e["orientation_error_deg"]["mean"]
 
     out = {"filtered": errors(filt)}

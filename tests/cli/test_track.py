@@ -214,8 +214,8 @@ def test_kalman_smoothed_run_reports_both_and_saves_the_filtered_track(tmp_path,
     m = run(cfg, tmp_path)
     z = np.load(tmp_path / "track.npz")
     assert z["theta_filtered"].shape == z["theta"].shape == (6, 31)
-    from torchmocap.cli.track import _print_summary
-    _print_summary(m)
+    from torchmocap.cli.outputs import print_summary
+    print_summary(m)
     out = capsys.readouterr().out
     f = m["filtered"]
     import re
@@ -232,26 +232,6 @@ def test_kalman_smoothed_run_reports_both_and_saves_the_filtered_track(tmp_path,
                                   "marker_error_mm"}
     assert m["filtered"]["mpjpe_mm"] != m["mpjpe_mm"]["mean"]
     assert m["filtered"]["marker_error_mm"] != m["marker_error_mm"]["mean"]
-
-
-def test_hypothesis_arrays_pad_missing_modes_with_nan():
-    import numpy as np
-
-    from torchmocap.cli.track import hypothesis_arrays
-
-    infos = [{}, {"hypotheses": [[0.1, 0.2], [0.3, 0.4]], "hypothesis_weights": [0.7, 0.3],
-                  "mode_energy": [1.0, 2.0]},
-             {"hypotheses": [[0.5, 0.6]], "hypothesis_weights": [1.0], "mode_energy": [3.0]}]
-    a = hypothesis_arrays(infos, 2)
-    assert a["hypotheses"].shape == (3, 2, 2) and a["hypotheses"].dtype == np.float32
-    np.testing.assert_allclose(a["hypotheses"][1], [[0.1, 0.2], [0.3, 0.4]], rtol=1e-6)
-    np.testing.assert_allclose(a["hypotheses"][2, 0], [0.5, 0.6], rtol=1e-6)
-    assert np.isnan(a["hypotheses"][2, 1]).all() and np.isnan(a["hypotheses"][0]).all()
-    np.testing.assert_allclose(a["hypothesis_weights"][1], [0.7, 0.3], rtol=1e-6)
-    np.testing.assert_allclose(a["hypothesis_energy"][2], [3.0, np.nan], rtol=1e-6)
-    assert hypothesis_arrays([{}, {"ess": [1.0]}], 2) == {}  # single-estimate inferences
-    with pytest.raises(ValueError, match=r"infos\[1\]\['hypotheses'\]: expected \(K, 3\)"):
-        hypothesis_arrays(infos, 3)
 
 
 def test_energy_vs_truth_diagnostic(tmp_path):

@@ -14,7 +14,8 @@ from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 from PIL import Image
 
-from torchmocap.cli.track import _validate_outputs, run
+from torchmocap.cli.outputs import validate_outputs
+from torchmocap.cli.track import run
 from torchmocap.viz.overlays import ESTIMATE_COLOR, TITLE_HEIGHT, TRUTH_COLOR
 from torchmocap.viz.video import ffmpeg_executable
 
@@ -108,22 +109,9 @@ def test_overlays_video_and_glb(tmp_path, fmt):
 def test_bad_output_settings_fail_before_the_track(tmp_path, override, key):
     cfg = _compose([override])
     with pytest.raises(ValueError, match=key.replace(".", r"\.")):
-        _validate_outputs(cfg)
+        validate_outputs(cfg)
     # run(): before any data is read (the clip does not even exist)
     cfg = _compose([override, "data.clip.path=/nonexistent.bvh", "progress=false"])
     with pytest.raises(ValueError, match=key.replace(".", r"\.")):
         run(cfg, tmp_path)
     assert not (tmp_path / "metrics.json").exists()
-
-
-def test_refine_statistics_are_averaged_over_the_tracked_frames():
-    from torchmocap.cli.track import _diagnostics
-
-    infos = [{"initial": True},
-             {"refine": {"start_energy": 3.0, "final_energy": 1.0, "start": 1}},
-             {"refine": {"start_energy": 5.0, "final_energy": 2.0, "start": 0}},
-             {"ess": [4.0]}]
-    m = _diagnostics(infos)["refine_mean"]
-    # frame 0 (the initial pose) is not a tracked frame; frames without a refine stage are
-    # not averaged in
-    assert m == {"final_energy": 1.5, "start": 0.5, "start_energy": 4.0}

@@ -145,7 +145,7 @@ class TestTrackSeeds:
         monkeypatch.undo()
         assert sizes.count(3 * 16) >= 2 * 3  # 2 layers x 3 frames, all seeds in one batch
         assert all(t.theta.shape == (4, tr.skeleton.num_dofs) for t in tracks)
-        assert all(t.infos[1]["batch_size"] == 3 for t in tracks)
+        assert all(t.infos[1].batch_size == 3 for t in tracks)
         alone = [_separate(tr, walk, s) for s in seeds]
         for b, theta in enumerate(alone):
             torch.testing.assert_close(tracks[b].theta, theta, atol=ATOL, rtol=0)
@@ -220,5 +220,5 @@ class TestTrackSeeds:
         seen = []
         track_seeds(_tracker(walk), walk, [0, 1], progress=False,
                     callbacks=[lambda states, infos: seen.append(
-                        ([s.frame for s in states], [i["frame"] for i in infos]))])
+                        ([s.frame for s in states], [i.frame for i in infos]))])
         assert seen == [([t, t], [t, t]) for t in (1, 2, 3)]

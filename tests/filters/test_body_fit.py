@@ -100,9 +100,10 @@ def test_a_fit_that_lowers_the_hard_iou_is_undone():
     assert torch.equal(body.radii, r0) and torch.equal(body.axis_offsets, off0)
     assert set(info["scales"].values()) == {1.0}
     assert info["energy_after"] == info["energy_before"]
-    from torchmocap.cli.track import _diagnostics
+    from torchmocap.evaluation import summarize_diagnostics
+    from torchmocap.filters import FrameInfo
 
-    assert _diagnostics([{"frame": 0, "body_fit": info}])["body_fit"]["kept"] == [False]
+    assert summarize_diagnostics([FrameInfo(0, body_fit=info)])["body_fit"]["kept"] == [False]
 
 
 def test_recovers_a_head_in_front_of_the_neck():
@@ -167,9 +168,10 @@ def test_hull_filter_keeps_the_foreground_all_views_agree_on():
     assert h["iou_before"] > info["iou_before"]  # the filtered masks fit the body better
     import json
 
-    from torchmocap.cli.track import _diagnostics
+    from torchmocap.evaluation import summarize_diagnostics
+    from torchmocap.filters import FrameInfo
 
-    m = json.loads(json.dumps(_diagnostics([{"frame": 0, "body_fit": info}])))["body_fit"]
+    m = json.loads(json.dumps(summarize_diagnostics([FrameInfo(0, body_fit=info)])))["body_fit"]
     assert m["hull"] == pytest.approx(h)  # metrics.json reports what the fit saw
     assert "hull_filter=True" in repr(fit)
     plain = SilhouetteBodyFit(CapsuleBody(sk).float(), rig, iterations=5, stride=2)
@@ -209,14 +211,14 @@ def test_tracker_refit_passes_alternate_pose_and_body():
     start[sk.dof_index("l_shoulder_abd")] = 0.0  # the arm down
     state = tr.init(start[None], frame)
     info = state.infos[0]
-    (p,) = info["refit"]
+    (p,) = info.refit
     assert p["energy_after"] < p["energy_before"] or not p["kept"]
-    assert p["body_fit"]["iou_after"] >= info["body_fit"]["iou_after"] - 0.01
+    assert p["body_fit"]["iou_after"] >= info.body_fit["iou_after"] - 0.01
     # the body was fitted in place: each pass scales the radii the previous one left, within
     # the bounds on the total scale
     ratio = rt.body.radii / CapsuleBody(sk).float().radii
     fit = tr.body_fit
-    s1, s2 = info["body_fit"]["scales"], p["body_fit"]["scales"]
+    s1, s2 = info.body_fit["scales"], p["body_fit"]["scales"]
     expected = torch.tensor([s1[fit.segments[i]] * s2[fit.segments[i]]
                              for i in fit.segment_index.tolist()])
     assert ratio == pytest.approx(expected, rel=2e-3)
@@ -232,16 +234,16 @@ def test_tracker_refit_passes_alternate_pose_and_body():
     # metrics.json reports the fit: IoU before the first fit, after the last pass, JSON-clean
     import json
 
-    from torchmocap.cli.track import _diagnostics
+    from torchmocap.evaluation import summarize_diagnostics
 
-    m = json.loads(json.dumps(_diagnostics(state.infos)))["body_fit"]
+    m = json.loads(json.dumps(summarize_diagnostics(state.infos)))["body_fit"]
     assert m["passes"] == 2
     # timings: the fits' own seconds add up to the reported total, and the first frame's
     # seconds cover the refinement, the fits and the refit's inference
-    fit_s = info["body_fit"]["seconds"] + p["body_fit"]["seconds"]
+    fit_s = info.body_fit["seconds"] + p["body_fit"]["seconds"]
     assert m["seconds"] == pytest.approx(fit_s)
-    assert info["seconds"] > fit_s + p["seconds"] - p["body_fit"]["seconds"] > 0
-    assert m["iou_before"] == pytest.approx(info["body_fit"]["iou_before"])
+    assert info.seconds > fit_s + p["seconds"] - p["body_fit"]["seconds"] > 0
+    assert m["iou_before"] == pytest.approx(info.body_fit["iou_before"])
     assert m["iou_after"] == pytest.approx(p["body_fit"]["iou_after"])
     assert m["iou_after"] > m["iou_before"]
     assert m["scales"] == pytest.approx(p["body_fit"]["scales"])
@@ -258,7 +260,7 @@ def test_checkpoint_keeps_the_fitted_body(tmp_path):
     """Radii and axis offsets fitted at the start are in the checkpoint: a resumed run tracks
     with the same body."""
     from torchmocap.assembly import Runtime, build_tracker, tracker_config
-    from torchmocap.filters.tracker import TrackState
+    from torchmocap.filters import TrackState
 
     sk = human31().float()
     rig = make_ring_rig(4).float()

@@ -49,7 +49,7 @@ def test_presets_track_better_than_holding_the_first_pose(walk_stereo, preset):
         track = tr.run(seq, progress=False)
         errs.append(_errors(seq, rt, track.theta))
         info = track.infos[-1]
-        assert 1.0 <= info["ess"][0] <= 60.0 and info["resampled"] is True
+        assert 1.0 <= info.ess[0] <= 60.0 and info.inference["resampled"] is True
         # the torso is not tracked (upper body): the root stays where the first frame put it
         assert torch.allclose(track.theta[:, :6], track.theta[:1, :6].expand(FRAMES, -1))
     # measured (mm; marker error, arm-joint MPJPE): first pose held (36.8, 91.3), the truth
@@ -70,7 +70,7 @@ def test_the_tracker_hands_its_last_estimates_to_a_speed_adaptive_proposal(walk_
     spread = SpatialPriorProposal._spread
 
     def spy(self, context):
-        h = context.extras.get("history")
+        h = context.history
         seen.append(None if h is None else tuple(h.shape))
         return spread(self, context)
 

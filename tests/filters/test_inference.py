@@ -21,7 +21,7 @@ from torchmocap.filters import (
 from torchmocap.filters.annealing import ESSSchedule
 from torchmocap.filters.resampling import SystematicResampler
 from torchmocap.ik import SensorManifold
-from torchmocap.proposals import GaussianDiffusionProposal, ProposalContext, Proposed
+from torchmocap.proposals import GaussianDiffusionProposal, PreviousFrame, ProposalContext, Proposed
 from torchmocap.skeleton import human31
 
 F64 = torch.float64
@@ -176,7 +176,7 @@ def test_refine_from_the_prediction_too_leaves_the_annealers_wrong_basin():
         g = torch.Generator().manual_seed(seed)
         parts = torch.tensor([1.0, 0.0, 0.0], dtype=F64) + 0.05 * torch.randn(
             50, 3, generator=g, dtype=F64)
-        ctx = ProposalContext(pred, extras={"particles": parts, "last_estimate": pred})
+        ctx = ProposalContext(pred, previous_frame=PreviousFrame(particles=parts, estimate=pred))
         x0, starts, wins = {}, {}, {}
         for start in ("estimate", "estimate_and_prediction", ("last_estimate", "estimate"),
                       ("estimate", "prediction", "last_estimate"), "prediction"):
@@ -207,14 +207,14 @@ def test_refine_from_the_prediction_too_leaves_the_annealers_wrong_basin():
 def test_refine_starts_are_stacked_in_the_order_asked_for():
     est, pred, last = (torch.full((3,), v, dtype=F64) for v in (1.0, 2.0, 3.0))
     inf = AnnealedInference(refine_from=["last_estimate", "estimate", "prediction"])
-    ctx = ProposalContext(pred, extras={"last_estimate": last})
+    ctx = ProposalContext(pred, previous_frame=PreviousFrame(estimate=last))
     rows, names = inf._refine_starts(est, ctx)
     assert rows[:, 0].tolist() == [3.0, 1.0, 2.0]
     assert names == ["last_estimate", "estimate", "prediction"]
     # the first frame of a track without a last estimate, or a batched prediction: left out
     rows, names = inf._refine_starts(est, ProposalContext(pred))
     assert rows[:, 0].tolist() == [1.0, 2.0] and names == ["estimate", "prediction"]
-    batched = ProposalContext(pred.expand(4, 3), extras={"last_estimate": last})
+    batched = ProposalContext(pred.expand(4, 3), previous_frame=PreviousFrame(estimate=last))
     assert inf._refine_starts(est, batched)[0][:, 0].tolist() == [3.0, 1.0]
     rows, names = AnnealedInference(refine_from="prediction")._refine_starts(
         est, ProposalContext(pred.expand(4, 3)))
@@ -399,8 +399,8 @@ class TestFidelityOptions:
         last = torch.zeros(2)
         pred = torch.tensor([0.5, 0.0])
         parts = torch.randn(30, 2, generator=torch.Generator().manual_seed(0))
-        ctx = ProposalContext(pred.clone(), extras={"last_estimate": last, "particles": parts,
-                                                    "log_weights": torch.zeros(30)})
+        past = PreviousFrame(estimate=last, particles=parts, log_weights=torch.zeros(30))
+        ctx = ProposalContext(pred.clone(), previous_frame=past)
         AnnealedInference(layers=2, propagate="particles", motion_scale=1.0)(
             _quadratic(torch.zeros(2)), prop, WeightedMeanEstimator(), ctx, 30,
             torch.Generator().manual_seed(1))

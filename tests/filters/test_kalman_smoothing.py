@@ -11,6 +11,7 @@ import torch
 from torchmocap.assembly import Runtime, build_tracker, tracker_config
 from torchmocap.data.loaders import synthesized_sequence
 from torchmocap.filters import (
+    FrameInfo,
     KalmanSmoother,
     Track,
     cv_kalman_smoother,
@@ -301,13 +302,13 @@ def test_smooth_keeps_the_filtered_track_and_reports():
     sk = human31()
     g = torch.Generator().manual_seed(1)
     theta = sk.clamp(0.05 * torch.randn(10, sk.num_dofs, generator=g))
-    track = Track(theta=theta, infos=[{"a": 1}] + [{}] * 9, seconds_per_frame=0.1)
+    track = Track(theta=theta, infos=[FrameInfo(t) for t in range(10)], seconds_per_frame=0.1)
     out = KalmanSmoother(skeleton=sk).smooth(track)
     assert torch.equal(out.filtered, theta) and out.theta.dtype == theta.dtype
-    rep = out.infos[0]["smoother"]
-    assert out.infos[0]["a"] == 1 and rep["name"] == "kalman"
+    rep = out.smoother
+    assert out.infos == track.infos and rep["name"] == "kalman"
     assert set(rep["dofs"]) == set(sk.dof_names)
-    assert track.infos[0] == {"a": 1}  # the input track is not changed
+    assert track.smoother is None and track.filtered is None  # the input track is not changed
     # two frames: nothing to smooth, said so
     short, info = KalmanSmoother(skeleton=sk).smooth_theta(theta[:2])
     assert torch.equal(short, theta[:2]) and "reason" in info

@@ -22,6 +22,7 @@ from torchmocap.filters import (
 from torchmocap.proposals import (
     CovarianceScaledProposal,
     GaussianDiffusionProposal,
+    PreviousFrame,
     ProposalContext,
 )
 
@@ -196,7 +197,8 @@ class TestMixtureInference:
 
     def test_feature_the_mixture_is_carried_and_reweighted(self):
         first = self._run(ProposalContext(previous=torch.zeros(2)), 0)
-        ctx = ProposalContext(previous=first.estimate, extras={"carry": first.carry})
+        ctx = ProposalContext(previous=first.estimate,
+                              previous_frame=PreviousFrame(carry=first.carry))
         second = self._run(ctx, 1)
         assert second.info["from_carry"] and second.info["prior_components"] == first.info[
             "modes"]
@@ -216,7 +218,8 @@ class TestMixtureInference:
         first = self._run(ProposalContext(previous=torch.zeros(2)), 0)
         carry = dict(first.carry)
         shift = torch.tensor([0.05, 0.0])
-        ctx = ProposalContext(previous=first.estimate + shift, extras={"carry": carry})
+        ctx = ProposalContext(previous=first.estimate + shift,
+                              previous_frame=PreviousFrame(carry=carry))
         res = self._run(ctx, 2, prior_std_deg=math.degrees(0.05), num=20)
         assert res.info["from_carry"]
         # a strong prior around the shifted modes pulls the optimum off the likelihood minimum
@@ -317,11 +320,11 @@ def test_monocular_presets_track_three_frames_better_than_holding_the_first_pose
         track = tr.run(seq, progress=False)
         errs.append(_mpjpe(sk, track.theta[1:], gt))
         info = track.infos[-1]
-        K = info["modes"]
-        assert len(info["hypotheses"]) == K and len(info["hypotheses"][0]) == sk.num_dofs
-        assert len(info["hypothesis_weights"]) == K
-        top = int(torch.tensor(info["hypothesis_weights"]).argmax())
-        assert torch.allclose(track.theta[-1], torch.tensor(info["hypotheses"][top]).float(),
+        K = info.inference["modes"]
+        assert len(info.hypotheses) == K and len(info.hypotheses[0]) == sk.num_dofs
+        assert len(info.hypothesis_weights) == K
+        top = int(torch.tensor(info.hypothesis_weights).argmax())
+        assert torch.allclose(track.theta[-1], torch.tensor(info.hypotheses[top]).float(),
                               atol=1e-5)
     # measured (MPJPE, mm): holding the first pose 99; kjs, css, ss 45 for every seed
     assert max(errs) < 0.8 * held and sum(errs) / 3 < 0.65 * held, (preset, errs, held)
@@ -366,4 +369,5 @@ def test_mixture_tracker_is_deterministic_and_resumes_from_a_checkpoint(walk_mon
     assert part.theta.shape[0] == 3
     resumed = tracker().run(seq, progress=False, checkpoint=ck)
     assert torch.equal(resumed.theta, full.theta)  # the carried mixture came back
-    assert resumed.infos[-1]["from_carry"] and resumed.infos[-1]["prior_components"] >= 1
+    assert resumed.infos[-1].inference["from_carry"]
+    assert resumed.infos[-1].inference["prior_components"] >= 1

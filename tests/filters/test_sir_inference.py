@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from torchmocap.filters import SIRInference, WeightedMeanEstimator
-from torchmocap.proposals import Proposal, ProposalContext, Proposed
+from torchmocap.proposals import PreviousFrame, Proposal, ProposalContext, Proposed
 
 F64 = torch.float64
 Q, R = 0.3**2, 0.5**2  # random-walk and observation variances
@@ -56,7 +56,7 @@ def _run_sir(z, num, seed, proposal):
             return 0.5 * (x[:, 0] - zt) ** 2 / R + 0.5 * math.log(2 * math.pi * R)
 
         ctx = ProposalContext(torch.zeros(1, dtype=F64),
-                              extras={"particles": parts, "log_weights": lw})
+                              previous_frame=PreviousFrame(particles=parts, log_weights=lw))
         res = inf(V, proposal, WeightedMeanEstimator(), ctx, num, g)
         parts, lw = res.particles, res.log_weights
         w = lw.exp()

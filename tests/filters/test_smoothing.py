@@ -10,11 +10,12 @@ import torch
 
 from torchmocap.assembly import Runtime, build_tracker, tracker_config
 from torchmocap.filters import (
+    FrameInfo,
     KalmanSmoother,
     SmootherChain,
+    TemporalPrior,
     Track,
     ViterbiSmoother,
-    temporal_log_prior,
     viterbi_path,
 )
 
@@ -43,19 +44,19 @@ def test_viterbi_path_is_the_brute_force_optimum(seed):
     assert score == pytest.approx(ref_score, abs=1e-12)
 
 
-def test_temporal_log_prior_wraps_rotations_and_scales_translations():
-    rot = torch.tensor([False, True])
+def test_transition_prior_wraps_rotations_and_scales_translations():
+    prior = TemporalPrior.from_stds(2, [0], math.degrees(0.1), 0.4)
     d = torch.tensor([[0.2, 2 * math.pi - 0.1]], dtype=torch.float64)
-    lp = temporal_log_prior(d, rot, rotation_std=0.1, translation_std=0.4)
+    lp = prior.log_prob(d, torch.zeros(2))
     # translation 0.2 / 0.4; rotation wrapped to -0.1 / 0.1
     assert float(lp[0]) == pytest.approx(-0.5 * (0.25 + 1.0), rel=1e-12)
 
 
 def _track(hyps, energies, theta0, weights=None):
-    infos = [{}]
+    infos = [FrameInfo(0)]
     for t, (H, v) in enumerate(zip(hyps, energies)):
         w = weights[t] if weights is not None else [1.0 / len(H)] * len(H)
-        infos.append({"hypotheses": H, "mode_energy": v, "hypothesis_weights": w})
+        infos.append(FrameInfo(t + 1, hypotheses=H, mode_energy=v, hypothesis_weights=w))
     first = [torch.tensor(theta0, dtype=torch.float32)]
     # the filter's estimate: the mode closest to the previous estimate (a greedy temporal MAP)
     est = first
@@ -79,8 +80,8 @@ def test_smoother_recovers_the_branch_a_greedy_filter_lost():
     out = sm.smooth(track)
     assert torch.allclose(out.theta[1:, 1], torch.tensor(a)), out.theta
     assert torch.equal(out.filtered, track.theta)
-    assert out.infos[0]["smoother"]["changed_frames"] == 5
-    assert track.infos[0] == {}  # the input track is left as it was
+    assert out.smoother["changed_frames"] == 5
+    assert track.smoother is None  # the input track is left as it was
     # with a flat emission the transition alone decides: the branch closest to the start
     flat = _track(hyps, [[0.0, 0.0]] * 5, [0.0, 0.0])
     assert torch.equal(sm.smooth(flat).theta, flat.theta)
@@ -113,7 +114,8 @@ def test_bad_input_is_named():
         ViterbiSmoother(rotation_std_deg=0.0)
     with pytest.raises(ValueError, match="emission"):
         ViterbiSmoother(emission="likelihood")
-    plain = Track(theta=torch.zeros(3, 2), infos=[{}, {"ess": [1.0]}, {}], seconds_per_frame=0)
+    plain = Track(theta=torch.zeros(3, 2), infos=[FrameInfo(0), FrameInfo(1, ess=[1.0]),
+                                                  FrameInfo(2)], seconds_per_frame=0)
     with pytest.raises(ValueError, match=r"infos\[1\].*inference=mixture"):
         ViterbiSmoother().smooth(plain)
     bad = _track([[[0.0, 0.1, 0.2]]], [[0.0]], [0.0, 0.0, 0.0])
@@ -157,13 +159,13 @@ def test_chain_picks_the_modes_then_removes_their_jitter(seed):
     ref = kalman.smooth(viterbi.smooth(track))
     assert torch.equal(out.theta, ref.theta)
     assert torch.equal(out.filtered, track.theta)
-    rep = out.infos[0]["smoother"]
+    rep = out.smoother
     assert rep["name"] == "viterbi+kalman"
     assert [r["name"] for r in rep["stages"]] == ["viterbi", "kalman"]
     assert torch.equal(rep["stages"][0]["theta"], viterbi.smooth(track).theta)
     assert torch.equal(rep["stages"][1]["theta"], out.theta)
     assert rep["changed_frames"] == int((out.theta != track.theta).any(-1).sum())
-    assert track.infos[0] == {}  # the input track is left as it was
+    assert track.smoother is None  # the input track is left as it was
     # the filter is on the mirror branch; Viterbi gets the branch back (the noise stays);
     # the Kalman stage removes much of the noise; Kalman alone smooths across the wrong branch
     e_filter, e_vit, e_chain = err(track.theta), err(viterbi.smooth(track).theta), err(out.theta)
@@ -181,11 +183,11 @@ def test_chain_settings_are_checked_and_named():
         SmootherChain({"viterbi": ViterbiSmoother(), "kalman": {"per_dof": True}})
     with pytest.raises(TypeError, match=r"stages\['1'\].*chain inside a chain"):
         SmootherChain([KalmanSmoother(), SmootherChain([KalmanSmoother()])])
-    from torchmocap.cli.track import _smoother_report
+    from torchmocap.evaluation import smoother_report
 
     rep = SmootherChain([ViterbiSmoother(), KalmanSmoother()]).smooth(_mirror_track(0)[0])
-    clean = _smoother_report(rep.infos[0]["smoother"])
-    assert "modes" in rep.infos[0]["smoother"]["stages"][0]  # the per-frame modes are kept...
+    clean = smoother_report(rep.smoother)
+    assert "modes" in rep.smoother["stages"][0]  # the per-frame modes are kept...
     assert "modes" not in clean["stages"][0] and "dofs" in clean["stages"][1]  # ...not in JSON
     assert all("theta" not in r for r in clean["stages"])
 
@@ -213,17 +215,21 @@ def test_tracker_with_smoother_returns_the_map_mode_sequence(walk_mono):
     # every smoothed pose is one of its frame's hypotheses, and the chosen sequence scores at
     # least as high as the filter's own choices
     for t in range(1, track.theta.shape[0]):
-        H = torch.tensor(track.infos[t]["hypotheses"], dtype=torch.float32)
+        H = torch.tensor(track.infos[t].hypotheses, dtype=torch.float32)
         assert (H - track.theta[t]).abs().amax(1).min() == 0
     states, scores = tr.smoother.candidates(plain)
-    rot = torch.ones(theta.shape[1], dtype=torch.bool)
-    rot[:3] = False
+    std = torch.full((theta.shape[1],), math.radians(tr.smoother.rotation_std_deg),
+                     dtype=torch.float64)
+    std[:3] = tr.smoother.translation_std
+
+    def log_prior(d):  # written out: wrapped rotations, Gaussian per DoF
+        d = torch.cat([d[:3], torch.atan2(torch.sin(d[3:]), torch.cos(d[3:]))])
+        return float(-0.5 * ((d / std) ** 2).sum())
+
     filt = [0] + [int((s.float() - plain.theta[t]).abs().amax(1).argmin())
                   for t, s in enumerate(states) if t]
     f_score = sum(float(scores[t][k]) for t, k in enumerate(filt)) + sum(
-        float(temporal_log_prior(states[t][filt[t]] - states[t - 1][filt[t - 1]], rot,
-                                 tr.smoother.rotation_std, tr.smoother.translation_std))
-        for t in range(1, len(filt)))
+        log_prior(states[t][filt[t]] - states[t - 1][filt[t - 1]]) for t in range(1, len(filt)))
     assert score >= f_score - 1e-9
 
 

@@ -13,7 +13,7 @@ import torch
 from torchmocap.filters import AnnealedInference, WeightedMeanEstimator
 from torchmocap.filters.annealed import anneal
 from torchmocap.filters.temporal_prior import TemporalPrior, temporal_prior_precision
-from torchmocap.proposals import GaussianDiffusionProposal, ProposalContext
+from torchmocap.proposals import GaussianDiffusionProposal, PreviousFrame, ProposalContext
 
 F64 = torch.float64
 
@@ -24,20 +24,28 @@ def test_precision_and_wrapping():
                                                   * 3, dtype=F64))
     rot = torch.tensor([False, False, True, True, True])
     mean = torch.tensor([0.0, 0.0, 3.1, 0.0, 0.0], dtype=F64)
-    prior = TemporalPrior(mean, prec, rot)
+    prior = TemporalPrior(prec, rot)
+    assert torch.equal(TemporalPrior.from_stds(5, [0, 1], 20.0, 0.1).precision, prec)
+    assert torch.equal(TemporalPrior.from_stds(5, [0, 1], 20.0, 0.1).rotation, rot)
     x = torch.tensor([[0.1, 0.0, -3.1, 0.0, 0.0],     # across the seam: 0.083 rad, not 6.2
                       [0.0, 0.0, 3.1, 2 * math.pi, 0.0]], dtype=F64)  # a full turn: no cost
     d = 2 * math.pi - 6.2
-    torch.testing.assert_close(prior(x), torch.tensor([0.5 * (100 * 0.01 + prec[2] * d * d),
-                                                       0.0], dtype=F64))
+    want = torch.tensor([0.5 * (100 * 0.01 + prec[2] * d * d), 0.0], dtype=F64)
+    torch.testing.assert_close(prior.energy(x, mean), want)
+    torch.testing.assert_close(prior.log_prob(x.float(), mean), -want)
     xg = (mean + 0.3 * torch.randn(4, 5, dtype=F64)).requires_grad_(True)
-    assert torch.autograd.gradcheck(prior, (xg,))
+    assert torch.autograd.gradcheck(lambda y: prior.energy(y, mean), (xg,))
+    # the analytic gradient equals autograd's
+    g_auto, = torch.autograd.grad(prior.energy(xg, mean).sum(), xg)
+    torch.testing.assert_close(prior.gradient(xg.detach(), mean), g_auto)
     with pytest.raises(ValueError, match="std_deg"):
         temporal_prior_precision(5, [], 0.0, 0.1)
     with pytest.raises(ValueError, match="translation_std"):
         temporal_prior_precision(5, [], 10.0, float("nan"))
-    with pytest.raises(ValueError, match="mean, precision, rotation"):
-        TemporalPrior(mean, prec[:3], rot)
+    with pytest.raises(ValueError, match="precision, rotation"):
+        TemporalPrior(prec[:3], rot)
+    with pytest.raises(ValueError, match="rotation: expected a bool"):
+        TemporalPrior(prec, rot.float())
 
 
 def test_anneal_log_prior_is_untempered_closed_form():
@@ -98,7 +106,7 @@ def test_prior_mean_last_estimate_centres_on_the_previous_estimate():
     sk = SimpleNamespace(num_dofs=2, translation_dofs=[])
     prop = GaussianDiffusionProposal(torch.full((2,), 1.0))
     ctx = ProposalContext(torch.tensor([-0.3, 0.0], dtype=F64))
-    ctx.extras["last_estimate"] = torch.tensor([0.3, 0.0], dtype=F64)
+    ctx.previous_frame = PreviousFrame(estimate=torch.tensor([0.3, 0.0], dtype=F64))
     on_pred = AnnealedInference(layers=8, prior_std_deg=math.degrees(0.7), skeleton=sk)
     on_last = AnnealedInference(layers=8, prior_std_deg=math.degrees(0.7), skeleton=sk,
                                 prior_mean="last_estimate")
@@ -119,7 +127,7 @@ def test_prior_mean_fraction_blends_along_the_shorter_arc():
     centres."""
     sk = SimpleNamespace(num_dofs=3, translation_dofs=[0])
     ctx = ProposalContext(torch.tensor([1.0, -3.0, 0.2], dtype=F64))  # the prediction
-    ctx.extras["last_estimate"] = torch.tensor([0.0, 3.0, 0.4], dtype=F64)
+    ctx.previous_frame = PreviousFrame(estimate=torch.tensor([0.0, 3.0, 0.4], dtype=F64))
     half = AnnealedInference(prior_std_deg=30.0, skeleton=sk, prior_mean=0.5)
     c = half.prior_centre(ctx)
     gap = 2 * math.pi - 6.0  # 3.0 -> -3.0 the short way, through pi

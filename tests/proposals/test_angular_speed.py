@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from torchmocap.proposals import AngularPriorProposal, ProposalContext
+from torchmocap.proposals import AngularPriorProposal, PreviousFrame, ProposalContext
 from torchmocap.skeleton import human31
 
 F64 = torch.float64
@@ -29,7 +29,7 @@ def test_spread_closed_form_and_only_the_moving_dof_widens():
     last, hist = _history(sk, "l_elbow_flex", 0.6)
     yaw = sk.dof_index("pelvis_rz")
     hist[0, yaw], hist[1, yaw] = 3.1, -3.1
-    ctx = ProposalContext(last, extras={"history": hist})
+    ctx = ProposalContext(last, previous_frame=PreviousFrame(history=hist))
     std = prop._spread(ctx)
     sigma = math.radians(5.0)
     free = prop.free.tolist()
@@ -41,7 +41,8 @@ def test_spread_closed_form_and_only_the_moving_dof_widens():
     assert torch.allclose(std[others], prop.std[others])
     # no history (first frame) or a single estimate: the fixed spread of eq. 3
     assert torch.equal(prop._spread(ProposalContext(last)), prop.std)
-    assert torch.equal(prop._spread(ProposalContext(last, extras={"history": hist[:1]})),
+    short = PreviousFrame(history=hist[:1])
+    assert torch.equal(prop._spread(ProposalContext(last, previous_frame=short)),
                        prop.std)
 
 
@@ -55,7 +56,7 @@ def test_draws_follow_the_widened_spread_and_the_prior_with_them():
     start[sk.dof_index("r_elbow_flex")] = 1.2
     hist = torch.stack([start.clone(), start.clone()])
     hist[0, sk.dof_index("l_elbow_flex")] -= 0.4
-    ctx = ProposalContext(start, extras={"history": hist})
+    ctx = ProposalContext(start, previous_frame=PreviousFrame(history=hist))
     out = prop.sample(ctx, 4000, torch.Generator().manual_seed(0))
     e = sk.dof_index("l_elbow_flex")
     want = math.hypot(math.radians(5.0), 0.2)

@@ -23,7 +23,7 @@ class TestCovarianceScaledProposal:
         sk = human31()
         css = CovarianceScaledProposal(sk, scale=8.0)
         ctx = ProposalContext(previous=sk.zero_pose(),
-                              extras={"covariances": 0.01 * torch.eye(31)})
+                              covariances=0.01 * torch.eye(31))
         out = css.sample(ctx, 20, torch.Generator().manual_seed(0))
         assert out.particles.shape == (20, 31) and out.stats["components"] == 1
         assert out.stats["component"].tolist() == [0] * 20
@@ -36,14 +36,14 @@ class TestCovarianceScaledProposal:
         cov = _spd(D, g)
         mu = torch.randn(D, generator=g, dtype=torch.float64)
         css = CovarianceScaledProposal(num_dofs=D, scale=scale, boundary="none")
-        ctx = ProposalContext(previous=mu, extras={"covariances": cov})
+        ctx = ProposalContext(previous=mu, covariances=cov)
         x = css.sample(ctx, 40000, g).particles
         assert torch.allclose(x.mean(0), mu, atol=4 * math.sqrt(scale * float(cov.max()) / 4e4))
         emp = torch.cov(x.T)
         assert torch.allclose(emp, scale * cov, atol=0.05 * scale * float(cov.diag().max()))
         # context.scale multiplies the proposal's own scale (an annealer's knob)
         half = css.sample(ProposalContext(previous=mu, scale=0.25,
-                                          extras={"covariances": cov}), 40000, g).particles
+                                          covariances=cov), 40000, g).particles
         assert torch.allclose(torch.cov(half.T), 0.25 * scale * cov,
                               atol=0.05 * scale * float(cov.diag().max()))
 
@@ -54,14 +54,14 @@ class TestCovarianceScaledProposal:
         R = float(torch.linalg.det(cov)) ** (1 / D)  # (lambda_1 ... lambda_n)^(1/n)
         ss = CovarianceScaledProposal(num_dofs=D, scale=8.0, spherical=True, boundary="none")
         x = ss.sample(ProposalContext(previous=torch.zeros(D, dtype=torch.float64),
-                                      extras={"covariances": cov}), 40000, g).particles
+                                      covariances=cov), 40000, g).particles
         emp = torch.cov(x.T)
         assert torch.allclose(emp, 8.0 * R * torch.eye(D, dtype=torch.float64),
                               atol=0.05 * 8.0 * R)
         # the same volume as CSS: det of the scale matrices agree
         css = CovarianceScaledProposal(num_dofs=D, scale=8.0, boundary="none")
         y = css.sample(ProposalContext(previous=torch.zeros(D, dtype=torch.float64),
-                                       extras={"covariances": cov}), 40000, g).particles
+                                       covariances=cov), 40000, g).particles
         ld_ss, ld_css = torch.logdet(emp), torch.logdet(torch.cov(y.T))
         assert float(ld_ss) == pytest.approx(float(ld_css), abs=0.1)
 
@@ -69,8 +69,7 @@ class TestCovarianceScaledProposal:
         g = torch.Generator().manual_seed(3)
         D = 3
         mu = torch.zeros(D, dtype=torch.float64)
-        ctx = ProposalContext(previous=mu, extras={"covariances": torch.eye(D,
-                                                                           dtype=torch.float64)})
+        ctx = ProposalContext(previous=mu, covariances=torch.eye(D, dtype=torch.float64))
         gauss = CovarianceScaledProposal(num_dofs=D, boundary="none", scale=1.0)
         cauchy = CovarianceScaledProposal(num_dofs=D, boundary="none", scale=1.0, tails="cauchy")
         xg = gauss.sample(ctx, 20000, g).particles
@@ -92,7 +91,7 @@ class TestCovarianceScaledProposal:
         lw = torch.log(torch.tensor([0.6, 0.3, 0.1]))
         css = CovarianceScaledProposal(num_dofs=D, scale=1.0, boundary="none")
         out = css.sample(ProposalContext(previous=modes, log_weights=lw,
-                                         extras={"hessians": H}), 30000, g)
+                                         hessians=H), 30000, g)
         comp = out.stats["component"]
         freq = torch.bincount(comp, minlength=3).double() / 30000
         assert torch.allclose(freq, torch.tensor([0.6, 0.3, 0.1], dtype=torch.float64),
@@ -103,7 +102,7 @@ class TestCovarianceScaledProposal:
         # uniform_mix spreads a fraction of the samples evenly over the modes
         mix = CovarianceScaledProposal(num_dofs=D, scale=1.0, boundary="none", uniform_mix=0.3)
         c2 = mix.sample(ProposalContext(previous=modes, log_weights=lw,
-                                        extras={"hessians": H}), 30000, g).stats["component"]
+                                        hessians=H), 30000, g).stats["component"]
         f2 = torch.bincount(c2, minlength=3).double() / 30000
         assert float(f2[2]) == pytest.approx(0.7 * 0.1 + 0.1, abs=0.015)
 
@@ -111,7 +110,7 @@ class TestCovarianceScaledProposal:
         sk = human31()
         css = CovarianceScaledProposal(sk, scale=16.0)
         th = sk.zero_pose()
-        ctx = ProposalContext(previous=th, extras={"covariances": 0.3 * torch.eye(31)})
+        ctx = ProposalContext(previous=th, covariances=0.3 * torch.eye(31))
         out = css.sample(ctx, 500, torch.Generator().manual_seed(5))
         assert bool(sk.within_limits(out.particles).all())
         assert out.stats["clamped"] > 0.9  # knees at 0 flexion: half the draws go below
@@ -144,7 +143,7 @@ class TestCovarianceScaledProposal:
             css.sample(ProposalContext(previous=torch.zeros(3)), 4)
         with pytest.raises(ValueError, match="covariances"):
             css.sample(ProposalContext(previous=torch.zeros(2),
-                                       extras={"covariances": torch.eye(3)}), 4)
+                                       covariances=torch.eye(3)), 4)
         with pytest.raises(ValueError, match="log_weights"):
             css.sample(ProposalContext(previous=torch.zeros(3, 2),
                                        log_weights=torch.zeros(2)), 4)

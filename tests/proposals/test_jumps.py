@@ -189,7 +189,7 @@ class TestChainVotes:
         cov = torch.eye(D, dtype=torch.float64) * 1e-4
         rl = prop.chain_dofs[LIMBS.index("r_leg")]
         cov[rl, rl] = 0.3
-        ctx = ProposalContext(previous=th, extras={"covariances": cov})
+        ctx = ProposalContext(previous=th, covariances=cov)
         out = prop.sample(ctx, 16, torch.Generator().manual_seed(0))
         assert out.stats["votes"] == {"r_leg": 1} and out.stats["voted"] == 1
         # every sample differs from the mode in the right leg only
@@ -242,7 +242,7 @@ class TestKinematicJumpProposal:
             for limb in pair:
                 d = prop.chain_dofs[LIMBS.index(limb)]
                 cov[k][d, d] = 0.3
-        ctx = ProposalContext(previous=modes, extras={"covariances": cov})
+        ctx = ProposalContext(previous=modes, covariances=cov)
         out = prop.sample(ctx, 10_000, torch.Generator().manual_seed(0))
         n = out.stats["unique"]
         got, comp = out.particles[:n], out.stats["component"][:n]
@@ -282,7 +282,7 @@ class TestKinematicJumpProposal:
         base = CovarianceScaledProposal(sk, scale=1.0)
         prop = KinematicJumpProposal(sk, rig, base=base)
         ctx = ProposalContext(previous=modes, log_weights=torch.log(torch.tensor([0.5, 0.5])),
-                              extras={"covariances": cov})
+                              covariances=cov)
         out = prop.sample(ctx, 120, torch.Generator().manual_seed(2))
         assert out.particles.shape == (120, D)
         assert set(out.stats["votes"]) == {"l_arm", "r_leg"}
@@ -314,4 +314,4 @@ class TestKinematicJumpProposal:
         with pytest.raises(ValueError, match="num"):
             prop.sample(ProposalContext(previous=th), 0)
         with pytest.raises(ValueError, match="covariances"):
-            prop.sample(ProposalContext(previous=th, extras={"covariances": torch.eye(3)}), 4)
+            prop.sample(ProposalContext(previous=th, covariances=torch.eye(3)), 4)

@@ -20,6 +20,7 @@ from torchmocap.proposals import (
     JointCriterion,
     NearPointCloud,
     PoseInSilhouette,
+    PreviousFrame,
     ProposalContext,
     RejectionProposal,
     SpatialPriorProposal,
@@ -285,7 +286,8 @@ def test_speed_gain_widens_the_spread_of_the_joints_that_moved():
     b[sk.dof_index("r_elbow_flex")] = angle  # only the right forearm (wrist, hand) moves
     prop = SpatialPriorProposal(sk, position_std=0.03, joints="upper_body", speed_gain=2.0)
     names = [sk.joint_names[j] for j in prop.joint_index.tolist()]
-    std = prop._spread(ProposalContext(b, extras={"history": torch.stack([a, a, b])}))
+    past = PreviousFrame(history=torch.stack([a, a, b]))
+    std = prop._spread(ProposalContext(b, previous_frame=past))
     # closed form: the wrist turns about the elbow's hinge (perpendicular to the forearm), so
     # it moves by the chord 2 l sin(angle / 2) of the forearm's length l
     pos = sk(a[None]).positions[0]
@@ -297,9 +299,10 @@ def test_speed_gain_widens_the_spread_of_the_joints_that_moved():
     still = [k for k, n in enumerate(names) if n not in ("r_wrist", "r_hand")]
     assert torch.allclose(std[still], torch.full((len(still),), 0.03), atol=1e-6)
     # no history of two estimates (the first frame), or no gain: the fixed spread
-    for ctx, gain in [(ProposalContext(b, extras={"history": b[None]}), 2.0),
+    for ctx, gain in [(ProposalContext(b, previous_frame=PreviousFrame(history=b[None])), 2.0),
                       (ProposalContext(b), 2.0),
-                      (ProposalContext(b, extras={"history": torch.stack([a, b])}), 0.0)]:
+                      (ProposalContext(b, previous_frame=PreviousFrame(
+                          history=torch.stack([a, b]))), 0.0)]:
         p = SpatialPriorProposal(sk, position_std=0.03, joints="upper_body", speed_gain=gain)
         assert torch.equal(p._spread(ctx), p.std)
 
@@ -310,7 +313,7 @@ def test_speed_gain_draws_scatter_the_moving_hand_wider():
     a[sk.dof_index("l_shoulder_abd")] = 0.5
     b = a.clone()
     b[sk.dof_index("r_elbow_flex")] = 0.8
-    ctx = ProposalContext(b, extras={"history": torch.stack([a, b])})
+    ctx = ProposalContext(b, previous_frame=PreviousFrame(history=torch.stack([a, b])))
 
     def spread(gain, joint):
         p = SpatialPriorProposal(sk, position_std=0.02, joints="upper_body", speed_gain=gain)

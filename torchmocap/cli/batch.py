@@ -110,14 +110,9 @@ def run_batch(cfg: DictConfig, out: Path) -> dict:
     returns (and writes to ``out/batch.json``) the seeds, their run directories and, where
     known, each one's mean orientation error; every seed's metrics are in its directory."""
     from torchmocap.assembly import Runtime, build_tracker
+    from torchmocap.cli.jobs import finish, thread_policy, validate_tracker
+    from torchmocap.cli.outputs import print_summary, validate_outputs
     from torchmocap.cli.runs import load_sequence
-    from torchmocap.cli.track import (
-        _print_summary,
-        _validate_outputs,
-        _validate_tracker,
-        finish,
-        thread_policy,
-    )
     from torchmocap.filters.batched import BatchGroup, track_groups
 
     seeds = batch_seeds(cfg)
@@ -142,8 +137,8 @@ def run_batch(cfg: DictConfig, out: Path) -> dict:
         todo.append((s, cs, fp, so))
     if todo:
         governor = thread_policy(cfg)
-        _validate_tracker(todo[0][1])
-        _validate_outputs(cfg)
+        validate_tracker(todo[0][1])
+        validate_outputs(cfg)
         keys = [_sequence_key(cs) for _, cs, _, _ in todo]
         shared = len(set(keys)) == 1
         if not shared:
@@ -172,7 +167,7 @@ def run_batch(cfg: DictConfig, out: Path) -> dict:
             runs[s] = finish(cs, so, seq, runtime, tracker, track, fp,
                              {"threads": governor.summary(), "batch": batch})
             print(f"seed {s} ({so}):")
-            _print_summary(runs[s])
+            print_summary(runs[s])
     summary = {"batch_seeds": seeds,
                "run_dirs": {str(s): str(out / f"seed_{s}") for s in seeds},
                "orientation_error_deg_mean": {

@@ -8,7 +8,8 @@ JSON, failure records and the sweep status.
 * A failing job writes ``failure.json`` (the error and its traceback) into its own directory,
   prints one line on stderr and — in a multirun — lets the sweep go on;
   :class:`SweepStatus` (a Hydra callback) counts this sweep's failures at its end, and the
-  command exits with status 2 when any job failed.
+  command exits with status 2 when any job failed. :func:`hydra_task` gives every Hydra
+  command that contract and :func:`console_main` its entry point.
 """
 
 from __future__ import annotations
@@ -27,12 +28,16 @@ from typing import Any
 from hydra.experimental.callback import Callback
 
 __all__ = [
+    "USER_ERRORS",
     "RunLockError",
     "SweepStatus",
     "acquire_lock",
     "release_lock",
     "code_fingerprint",
     "config_fingerprint",
+    "console_main",
+    "hydra_task",
+    "is_multirun",
     "load_sequence",
     "read_json",
     "write_failure",
@@ -274,3 +279,70 @@ class SweepStatus(Callback):
 def sweep_failed() -> bool:
     """Whether the multirun that just ended in this process had a failing job."""
     return bool(_failures)
+
+
+#: exception types that are a setting or the data, not a bug: one line on stderr, no traceback
+USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, LookupError, OSError, TypeError)
+
+
+def is_multirun() -> bool:
+    """Whether this process runs a job of a Hydra multirun."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+
+
+def hydra_task(command: str, failed: Any = None, fingerprint=None):
+    """Decorator of a Hydra command's body ``fn(cfg, out) -> value`` (``out``: the job's
+    directory) giving it the commands' error contract.
+
+    A raised error writes ``out/failure.json`` (the error, its traceback and, when
+    ``fingerprint(cfg)`` is given, the run's fingerprint) and prints
+    ``<command>: error: <one line>`` on stderr; then a single run exits with status 2 and a job
+    of a multirun returns ``failed`` (or ``failed(cfg)`` when callable: e.g. the worst value
+    for a sweeper) so that the sweep goes on. An error that is not one of :data:`USER_ERRORS`
+    in a single run is a bug: it is re-raised with its traceback (after the record is
+    written)."""
+
+    def decorate(fn):
+        @functools.wraps(fn)
+        def task(cfg):
+            from hydra.core.hydra_config import HydraConfig
+
+            out = Path(HydraConfig.get().runtime.output_dir)
+            multirun = is_multirun()
+            try:
+                return fn(cfg, out)
+            except Exception as e:
+                fp = None
+                if fingerprint is not None:
+                    try:
+                        fp = fingerprint(cfg)
+                    except Exception:
+                        fp = None
+                line = write_failure(out, e, fp, command)
+                if not isinstance(e, USER_ERRORS) and not multirun:
+                    raise  # a bug: show the traceback
+                print(f"{command}: error: {line}", file=sys.stderr)
+                if multirun:
+                    return failed(cfg) if callable(failed) else failed
+                sys.exit(2)
+
+        return task
+
+    return decorate
+
+
+def console_main(hydra_main, argv=None) -> None:
+    """Run a Hydra main as a console command: the repository's ``conf/`` search-path warning
+    silenced (it exists only in a checkout), ``argv`` (a function of ``sys.argv[1:]``) applied
+    first, and exit status 2 when any job of a sweep failed."""
+    import warnings
+
+    warnings.filterwarnings("ignore", message=r".*provider=hydra\.searchpath in main.*")
+    if argv is not None:
+        sys.argv[1:] = argv(sys.argv[1:])
+    hydra_main()
+    if sweep_failed():
+        sys.exit(2)

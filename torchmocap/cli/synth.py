@@ -10,14 +10,13 @@ the Hydra run directory. Unreadable clips or bad settings: one line on stderr, e
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 from typing import Any
 
 import hydra
 from omegaconf import DictConfig
 
-from torchmocap.cli.runs import load_sequence
+from torchmocap.cli.runs import console_main, hydra_task, load_sequence
 
 __all__ = ["main", "preview_image", "run"]
 
@@ -96,39 +95,17 @@ def preview_image(seq, t: int):
 
 
 @hydra.main(config_path="../conf", config_name="synth", version_base="1.3")
-def _hydra_main(cfg: DictConfig) -> None:
+@hydra_task("torchmocap-synth")
+def _hydra_main(cfg: DictConfig, out: Path) -> None:
     import json
 
-    from hydra.core.hydra_config import HydraConfig
-    from hydra.types import RunMode
-
-    from torchmocap.cameras import CameraError
-    from torchmocap.cli.runs import write_failure
-    from torchmocap.data import MissingModalityError, ScenarioError, SynthesisError
-    from torchmocap.io import MotionFormatError, SkeletonMapError
-
-    hc = HydraConfig.get()
-    out_dir = Path(hc.runtime.output_dir)
-    (out_dir / "failure.json").unlink(missing_ok=True)
-    try:
-        info = run(cfg, out_dir)
-    except (MotionFormatError, SkeletonMapError, ScenarioError, SynthesisError,
-            CameraError, MissingModalityError, FileNotFoundError, KeyError, ValueError) as e:
-        line = write_failure(out_dir, e, None, "torchmocap-synth")
-        print(f"torchmocap-synth: error: {line}", file=sys.stderr)
-        if hc.mode == RunMode.MULTIRUN:  # the other jobs of the sweep go on
-            return
-        sys.exit(2)
-    print(json.dumps(info))
+    (out / "failure.json").unlink(missing_ok=True)
+    print(json.dumps(run(cfg, out)))
 
 
 def main() -> None:
     """Console entry point (exit status 2 when the run, or any job of a sweep, failed)."""
-    from torchmocap.cli.runs import sweep_failed
-
-    _hydra_main()
-    if sweep_failed():
-        sys.exit(2)
+    console_main(_hydra_main)
 
 
 if __name__ == "__main__":

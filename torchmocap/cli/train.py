@@ -16,6 +16,8 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from torchmocap.cli.runs import console_main, hydra_task
+
 
 def run(cfg: DictConfig, out: Path) -> dict:
     """Train as configured; returns the summary written to ``out/summary.json``."""
@@ -101,10 +103,8 @@ def run(cfg: DictConfig, out: Path) -> dict:
 
 
 @hydra.main(config_path="../conf", config_name="train", version_base="1.3")
-def _hydra_main(cfg: DictConfig) -> None:
-    from hydra.core.hydra_config import HydraConfig
-
-    out = Path(HydraConfig.get().runtime.output_dir)
+@hydra_task("torchmocap-train")
+def _hydra_main(cfg: DictConfig, out: Path) -> None:
     s = run(cfg, out)
     f = s["final"]
     print(f"torchmocap-train: {s['epochs']} epochs in {s['seconds_training']:.0f} s "
@@ -114,8 +114,8 @@ def _hydra_main(cfg: DictConfig) -> None:
 
 
 def main() -> None:
-    """Console entry point."""
-    _hydra_main()
+    """Console entry point (exit status 2 when the run, or any job of a sweep, failed)."""
+    console_main(_hydra_main)
 
 
 if __name__ == "__main__":

@@ -30,7 +30,15 @@ import hydra
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from torchmocap.cli.runs import config_fingerprint, read_json, write_failure, write_json_atomic
+from torchmocap.cli.runs import (
+    config_fingerprint,
+    console_main,
+    hydra_task,
+    is_multirun,
+    read_json,
+    write_failure,
+    write_json_atomic,
+)
 
 __all__ = ["HeldOutReport", "evaluate_clips", "main"]
 
@@ -111,27 +119,24 @@ def _json_safe(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
+def _worst(cfg) -> float:
+    """The worst objective value (a failed trial): a sweeper such as Optuna goes on."""
+    tune = cfg.get("tune") or {}
+    return math.inf if tune.get("direction", "minimize") == "minimize" else -math.inf
+
+
 @hydra.main(config_path="../conf", config_name="track", version_base="1.3")
-def _hydra_main(cfg: DictConfig) -> float:
+@hydra_task("torchmocap-tune", failed=_worst)
+def _hydra_main(cfg: DictConfig, out: Path) -> float:
     from hydra.core.hydra_config import HydraConfig
-    from hydra.types import RunMode
 
     hc = HydraConfig.get()
-    out = Path(hc.runtime.output_dir)
-    multirun = hc.mode == RunMode.MULTIRUN
-    try:
-        if "tune" not in cfg:
-            raise ValueError("tune: no tune settings (select them with +tune=default)")
-        clips = _check_clips("tune.train_clips", cfg.tune.train_clips)
-        _check_clips("tune.heldout_clips", cfg.tune.get("heldout_clips"))
-        if not clips:
-            raise ValueError("tune.train_clips: expected at least one clip")
-    except ValueError as e:
-        line = write_failure(out, e, None, "torchmocap-tune")
-        print(f"torchmocap-tune: error: {line}", file=sys.stderr)
-        if multirun:
-            return math.inf
-        sys.exit(2)
+    if "tune" not in cfg:
+        raise ValueError("tune: no tune settings (select them with +tune=default)")
+    clips = _check_clips("tune.train_clips", cfg.tune.train_clips)
+    _check_clips("tune.heldout_clips", cfg.tune.get("heldout_clips"))
+    if not clips:
+        raise ValueError("tune.train_clips: expected at least one clip")
     overrides = list(hc.overrides.task)
     objective = str(cfg.tune.get("objective", "orientation_error_deg.mean"))
     res = evaluate_clips(clips, overrides, out, hc.job.config_name, objective,
@@ -142,10 +147,10 @@ def _hydra_main(cfg: DictConfig) -> float:
     print(f"torchmocap-tune: {objective} over {', '.join(clips)}: "
           + ", ".join(f"{k} {v:.3f}" for k, v in res["clips"].items())
           + f"; mean {res['mean']:.3f}")
-    if res["failed"] and not multirun:
+    if res["failed"] and not is_multirun():
         sys.exit(2)
     if not math.isfinite(res["mean"]):  # the worst value: a sweeper (Optuna) goes on
-        return math.inf if cfg.tune.get("direction", "minimize") == "minimize" else -math.inf
+        return _worst(cfg)
     return float(res["mean"])
 
 
@@ -284,15 +289,7 @@ def _with_tune_settings(args: list[str]) -> list[str]:
 
 def main() -> None:
     """Console entry point (exit status 2 when a run, or any job of a sweep, failed)."""
-    import warnings
-
-    from torchmocap.cli.runs import sweep_failed
-
-    warnings.filterwarnings("ignore", message=r".*provider=hydra\.searchpath in main.*")
-    sys.argv[1:] = _with_tune_settings(sys.argv[1:])
-    _hydra_main()
-    if sweep_failed():
-        sys.exit(2)
+    console_main(_hydra_main, argv=_with_tune_settings)
 
 
 if __name__ == "__main__":

@@ -88,20 +88,10 @@ from torchmocap.filters.resampling import (
     systematic_resample,
 )
 from torchmocap.filters.sir import SIRResult, SIRStep, sir_filter, sir_step
-from torchmocap.filters.smoothing import (
-    Smoother,
-    SmootherChain,
-    ViterbiSmoother,
-    temporal_log_prior,
-    viterbi_path,
-)
-from torchmocap.filters.tracker import (
-    CheckpointError,
-    MissingObservationError,
-    Track,
-    Tracker,
-    TrackState,
-)
+from torchmocap.filters.smoothing import Smoother, SmootherChain, ViterbiSmoother, viterbi_path
+from torchmocap.filters.state import FrameInfo, Track, TrackState
+from torchmocap.filters.temporal_prior import TemporalPrior, temporal_prior_precision
+from torchmocap.filters.tracker import CheckpointError, MissingObservationError, Tracker
 
 __all__ = [
     "AnnealedInference",
@@ -114,6 +104,7 @@ __all__ = [
     "CovarianceDiffusion",
     "ESSSchedule",
     "Estimator",
+    "FrameInfo",
     "GeometricDiffusion",
     "GeometricSchedule",
     "Inference",
@@ -145,6 +136,7 @@ __all__ = [
     "Track",
     "TrackState",
     "Tracker",
+    "TemporalPrior",
     "ViterbiSmoother",
     "KalmanSmoother",
     "cv_kalman_smoother",
@@ -184,7 +176,7 @@ __all__ = [
     "skeleton_rotation_groups",
     "stratified_resample",
     "systematic_resample",
-    "temporal_log_prior",
+    "temporal_prior_precision",
     "viterbi_path",
     "weighted_mean",
 ]

@@ -39,6 +39,7 @@ Example:
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -46,7 +47,8 @@ from typing import Any
 
 import torch
 
-from torchmocap.filters.tracker import Track, Tracker, initial_pose
+from torchmocap.filters.state import Track
+from torchmocap.filters.tracker import Tracker, initial_pose
 
 __all__ = ["BatchGroup", "Lockstep", "track_groups", "track_seeds"]
 
@@ -292,8 +294,8 @@ def track_groups(groups: Sequence[BatchGroup], progress: bool = True,
             None = all of them at once. On a CPU, blocks that outgrow the caches can cost
             more than the calls they save (``experiments/benchmarks/batched.py --max-batch``).
 
-    A frame's ``info["seconds"]`` is the wall time of the whole batch's frame; ``info`` also
-    records ``batch_size``.
+    A frame's ``FrameInfo.seconds`` is the wall time of the whole batch's frame; its
+    ``batch_size`` is ``B``.
     """
     from tqdm import tqdm
 
@@ -310,7 +312,8 @@ def track_groups(groups: Sequence[BatchGroup], progress: bool = True,
             gen = torch.Generator(device=st.history.device).manual_seed(seed)
             states[b] = type(st)(history=st.history.clone(), frame=st.frame,
                                  generator_state=gen.get_state(),
-                                 estimates=list(st.estimates), infos=[dict(st.infos[0])],
+                                 estimates=list(st.estimates),
+                                 infos=[dataclasses.replace(st.infos[0])],
                                  particles=st.particles, log_weights=st.log_weights,
                                  carry=st.carry)
             continue
@@ -343,12 +346,12 @@ def track_groups(groups: Sequence[BatchGroup], progress: bool = True,
             for b, out in enumerate(lock.run(jobs)):
                 if out is not None:
                     states[b], _, infos[b] = out
-                    infos[b]["batch_size"] = B
+                    infos[b].batch_size = B
             for cb in callbacks:
                 cb(states, infos)
     tracks = []
     for g, st in zip(groups, states):
-        secs = [i["seconds"] for i in st.infos[1:] if "seconds" in i]
+        secs = [i.seconds for i in st.infos[1:] if i.seconds is not None]
         tracks.append(g.tracker.finish(Track(
             theta=torch.stack(st.estimates), infos=st.infos,
             seconds_per_frame=float(sum(secs) / max(len(secs), 1)))))
@@ -360,8 +363,9 @@ def track_seeds(tracker: Tracker, sequence, seeds: Sequence[int],
                 callbacks: Sequence[Callable] = (), max_batch: int | None = None
                 ) -> list[Track]:
     """``B = len(seeds)`` tracks of ``sequence`` by ``tracker``, one per seed, their particles
-    in one energy batch per annealing layer; track ``b`` equals ``tracker.run(sequence)`` with
-    ``tracker.seed = seeds[b]``. See :func:`track_groups` for ``callbacks`` and
+    in one energy batch per annealing layer; track ``b`` follows ``tracker.run(sequence)`` with
+    ``tracker.seed = seeds[b]`` (to float rounding of the batched energy: see the module
+    docstring). See :func:`track_groups` for ``callbacks`` and
     ``max_batch``."""
     seeds = list(seeds)
     if not seeds:

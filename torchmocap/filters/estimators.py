@@ -28,7 +28,7 @@ import math
 import torch
 from torch import nn
 
-from torchmocap.filters.smoothing import temporal_log_prior
+from torchmocap.filters.temporal_prior import TemporalPrior
 
 __all__ = [
     "BestParticleEstimator",
@@ -177,18 +177,18 @@ class TemporalMapEstimator(Estimator):
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
                     or v <= 0:
                 raise ValueError(f"{name}: expected a finite number > 0, got {v!r}")
-        self.rotation_std = math.radians(rotation_std_deg)
+        self.rotation_std_deg = float(rotation_std_deg)
         self.translation_std = float(translation_std)
         self.translation_dofs = [] if skeleton is None else list(skeleton.translation_dofs)
 
     def log_scores(self, particles: torch.Tensor, weights: torch.Tensor,
                    prediction: torch.Tensor) -> torch.Tensor:
         """``(P,)`` log weight plus log temporal prior (up to a constant) of each particle."""
-        rot = torch.ones(particles.shape[-1], dtype=torch.bool, device=particles.device)
-        rot[self.translation_dofs] = False
-        prior = temporal_log_prior(particles - prediction.to(particles), rot, self.rotation_std,
-                                   self.translation_std)
-        return torch.log(weights.to(torch.float64).clamp_min(1e-300)) + prior
+        prior = TemporalPrior.from_stds(particles.shape[-1], self.translation_dofs,
+                                        self.rotation_std_deg, self.translation_std,
+                                        device=particles.device)
+        log_prior = prior.log_prob(particles, prediction)
+        return torch.log(weights.to(torch.float64).clamp_min(1e-300)) + log_prior
 
     def forward(self, particles, weights, context=None):
         _check(particles, weights)
@@ -202,7 +202,7 @@ class TemporalMapEstimator(Estimator):
         return particles[int(torch.argmax(self.log_scores(particles, weights, prev)))]
 
     def extra_repr(self) -> str:
-        return (f"rotation_std_deg={math.degrees(self.rotation_std):g}, "
+        return (f"rotation_std_deg={self.rotation_std_deg:g}, "
                 f"translation_std={self.translation_std:g}")
 
 

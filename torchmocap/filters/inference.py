@@ -27,6 +27,7 @@ weights, and diagnostics.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 from collections.abc import Sequence
@@ -40,7 +41,8 @@ from torchmocap.filters.annealed import anneal
 from torchmocap.filters.annealing import get_schedule
 from torchmocap.filters.local import check_method, minimise_local
 from torchmocap.filters.resampling import get_resampler
-from torchmocap.filters.temporal_prior import TemporalPrior, temporal_prior_precision
+from torchmocap.filters.temporal_prior import TemporalPrior
+from torchmocap.geometry import wrap_angle
 from torchmocap.proposals.base import ProposalContext
 
 __all__ = [
@@ -66,7 +68,7 @@ class InferenceResult:
         log_weights: ``(P,)`` normalised log weights of ``particles`` (None for local descent).
         info: JSON-friendly diagnostics (β and ESS per layer, proposal statistics, timings).
         carry: state the inference keeps for the next frame (tensors, lists, numbers; e.g. the
-            components of a mixture); the tracker hands it back as ``context.extras["carry"]``
+            components of a mixture); the tracker hands it back as ``context.previous_frame.carry``
             and stores it in checkpoints.
     """
 
@@ -218,14 +220,14 @@ class AnnealedInference(Inference):
         refine_from: where ``refine`` starts — one name or a list of names among
             ``"estimate"`` (the annealed estimate), ``"prediction"`` (the prediction
             ``context.previous``, the LS baseline's start) and ``"last_estimate"`` (the previous
-            frame's estimate, ``context.extras["last_estimate"]``: no momentum); every start is
+            frame's estimate, ``context.last_estimate``: no momentum); every start is
             descended in one batch and the lowest final energy is kept — the annealer's basin or
             the one a local descent from the dynamics finds. ``"estimate_and_prediction"`` is
             short for ``["estimate", "prediction"]``.
         prior_std_deg: optional Gaussian temporal prior about ``θ̂`` (see ``prior_mean``): every
             layer's weights are multiplied by ``exp(−½ Σ (wrap(θ − θ̂) / σ)²)`` — not tempered by β —
             with ``σ`` = this angle on every rotation DoF and ``prior_translation_std`` metres on
-            the root translation (:class:`~torchmocap.filters.temporal_prior.TemporalPrior`).
+            the root translation (:class:`~torchmocap.filters.TemporalPrior`).
             None: off (the paper's weights). ``refine`` descends the energy alone.
         prior_translation_std: see ``prior_std_deg``.
         prior_mean: ``"prediction"`` (the AR prediction, the dynamics' own mean),
@@ -260,18 +262,13 @@ class AnnealedInference(Inference):
                              f"in [0, 1], got {prior_mean!r}")
         self.prior_mean, self._prior_blend = prior_mean, blend
         self.prior_std_deg = prior_std_deg
-        prec = rot = None
+        self.temporal_prior = None
         if prior_std_deg is not None:
             if skeleton is None:
                 raise ValueError("skeleton: required with prior_std_deg (which DoFs are "
                                  "translations)")
-            prec = temporal_prior_precision(skeleton.num_dofs, skeleton.translation_dofs,
-                                            prior_std_deg, prior_translation_std,
-                                            dtype=torch.float64)
-            rot = torch.ones(skeleton.num_dofs, dtype=torch.bool)
-            rot[list(skeleton.translation_dofs)] = False
-        self.register_buffer("_prior_precision", prec)
-        self.register_buffer("_prior_rotation", rot)
+            self.temporal_prior = TemporalPrior.for_skeleton(skeleton, prior_std_deg,
+                                                             prior_translation_std)
         if refine is not None and not isinstance(refine, Inference):
             raise TypeError(f"refine: expected an Inference module (e.g. LocalInference) or "
                             f"None, got {type(refine).__name__}")
@@ -297,24 +294,24 @@ class AnnealedInference(Inference):
 
     def _start(self, proposal, context) -> ProposalContext:
         """Layer 0's context: the prediction or the propagated particle set, and its spread."""
-        last = context.extras.get("last_estimate")
+        last = context.last_estimate
         prev = context.previous
         ctx = context
         if last is not None and prev.dim() == 1 and (self.motion_scale > 0
                                                       or self.propagate == "particles"):
             delta = prev - last.to(prev)
             # an angle that wrapped by 2 pi between the estimate and the prediction
-            delta = torch.where(delta.abs() > math.pi,
-                                torch.remainder(delta + math.pi, 2 * math.pi) - math.pi, delta)
+            delta = torch.where(delta.abs() > math.pi, wrap_angle(delta), delta)
             own = proposal.coordinate_std
             if self.motion_scale > 0 and own is not None:
                 d = proposal.coordinates(delta[None])[0].abs() * self.motion_scale
                 std = (own.to(d).square() + d.square()).sqrt() * context.scale
                 ctx = dataclasses.replace(ctx, std=std)
-            parts = context.extras.get("particles")
+            past = context.previous_frame
+            parts = None if past is None else past.particles
             if self.propagate == "particles" and parts is not None and parts.dim() == 2:
                 ctx = dataclasses.replace(ctx, previous=parts.to(prev) + delta,
-                                          log_weights=context.extras.get("log_weights"))
+                                          log_weights=past.log_weights)
         return ctx
 
     def _one_round(self, energy, proposal, estimator, context, num, generator, start=None,
@@ -339,16 +336,15 @@ class AnnealedInference(Inference):
     def prior_centre(self, context) -> torch.Tensor:
         """The temporal prior's mean ``(D,)`` for ``context`` (see ``prior_mean``): the
         prediction ``context.previous``, the previous estimate
-        ``context.extras["last_estimate"]`` (when the tracker passes one), or the point
+        ``context.last_estimate`` (when the tracker passes one), or the point
         ``prior_mean`` of the way between them."""
         mean = context.previous
-        last = context.extras.get("last_estimate")
+        last = context.last_estimate
         if self._prior_blend < 1.0 and last is not None:
             last = last.to(mean)
-            d = mean - last  # last estimate -> prediction, angles along the shorter arc
-            if self._prior_rotation is not None:
-                d = torch.where(self._prior_rotation.to(d.device),
-                                torch.remainder(d + math.pi, 2 * math.pi) - math.pi, d)
+            # last estimate -> prediction, angles along the shorter arc
+            d = (mean - last if self.temporal_prior is None
+                 else self.temporal_prior.difference(mean, last))
             mean = last + self._prior_blend * d
         return mean
 
@@ -356,9 +352,9 @@ class AnnealedInference(Inference):
                 generator: torch.Generator | None = None) -> InferenceResult:
         t0 = time.perf_counter()
         prior = None
-        if self._prior_precision is not None and context.previous.dim() == 1:
-            prior = TemporalPrior(self.prior_centre(context), self._prior_precision,
-                                  self._prior_rotation)
+        if self.temporal_prior is not None and context.previous.dim() == 1:
+            centre = self.prior_centre(context).detach()
+            prior = functools.partial(self.temporal_prior.energy, mean=centre)
         best = None
         info: dict[str, Any] = {"beta": [], "ess": [], "min_energy": []}
         all_stats: list[dict] = []
@@ -412,7 +408,7 @@ class AnnealedInference(Inference):
         found = {"estimate": est}
         if context.previous.dim() == 1:
             found["prediction"] = context.previous
-        last = context.extras.get("last_estimate")
+        last = context.last_estimate
         if torch.is_tensor(last) and last.shape == est.shape:
             found["last_estimate"] = last
         names = [n for n in self.refine_from if n in found] or ["estimate"]
@@ -484,8 +480,8 @@ class LocalInference(Inference):
 class SIRInference(Inference):
     """Sequential importance resampling, one step per frame (Hauberg & Pedersen §1.1, eqs. 1–2).
 
-    The particle set is carried between frames (``context.extras["particles"]`` and
-    ``["log_weights"]``; the first frame starts from ``num`` copies of ``context.previous``).
+    The particle set is carried between frames (``context.previous_frame.particles`` and
+    ``.log_weights``; the first frame starts from ``num`` copies of ``context.previous``).
     Per frame: resample when the incoming ESS fraction is below ``ess_threshold`` (1 = every
     frame), propose one particle from each (possibly resampled) particle, and weight
     ``w_t ∝ w_{t−1} · p(z_t | θ_t) · r_t`` with ``log p = −V`` (the likelihood's energy) and the
@@ -520,8 +516,9 @@ class SIRInference(Inference):
         from torchmocap.filters.resampling import effective_sample_size
 
         t0 = time.perf_counter()
-        prev = context.extras.get("particles")
-        lw = context.extras.get("log_weights")
+        past = context.previous_frame
+        prev = None if past is None else past.particles
+        lw = None if past is None else past.log_weights
         if prev is None or prev.dim() != 2 or prev.shape[0] != num:
             start = context.previous if context.previous.dim() == 1 else context.previous[0]
             prev = start.expand(num, -1).clone()

@@ -46,12 +46,14 @@ The smoother sees the future: compare it with other smoothers, not with filters 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import torch
 
 from torchmocap.filters.prediction import skeleton_rotation_groups
 from torchmocap.filters.smoothing import Smoother
+from torchmocap.geometry import wrap_angle
 from torchmocap.geometry.quaternions import matrix_to_quaternion, quaternion_to_matrix
 
 __all__ = ["KalmanSmoother", "cv_kalman_smoother", "fit_cv_noise", "unwrap_angles"]
@@ -68,7 +70,7 @@ def unwrap_angles(theta: torch.Tensor) -> torch.Tensor:
     if theta.shape[0] < 2:
         return theta.clone()
     d = torch.diff(theta, dim=0)
-    d = torch.remainder(d + math.pi, 2 * math.pi) - math.pi
+    d = wrap_angle(d)
     return torch.cat([theta[:1], theta[:1] + torch.cumsum(d, 0)])
 
 
@@ -250,7 +252,7 @@ class KalmanSmoother(Smoother):
             estimates). The noise is still estimated from the whole track.
 
     ``smooth(track)`` returns the track with ``theta`` smoothed and ``filtered`` the tracker's
-    estimates; ``infos[0]["smoother"]`` reports the fitted stds per DoF (``dofs``), their
+    estimates; its ``smoother`` report gives the fitted stds per DoF (``dofs``), their
     medians, the log-likelihood and the number of clamped values.
     """
 
@@ -389,18 +391,18 @@ class KalmanSmoother(Smoother):
             hi_l = self.upper.to("cpu", torch.float64)
             free = torch.zeros(D, dtype=torch.bool)
             free[rot] = ~(torch.isfinite(lo_l[rot]) & torch.isfinite(hi_l[rot]))
-            wrapped = torch.remainder(out + math.pi, 2 * math.pi) - math.pi
+            wrapped = wrap_angle(out)
             out = torch.where(free, wrapped, out)
             if self.clamp_limits:
                 c = torch.maximum(torch.minimum(out, hi_l), lo_l)
                 clamped = int((c != out).sum())
                 out = c
         else:
-            out = torch.remainder(out + math.pi, 2 * math.pi) - math.pi
+            out = wrap_angle(out)
         out[0] = y[0]
         names = self.dof_names or [str(d) for d in range(D)]
         result = out.to(theta.dtype).to(theta.device)
-        change = torch.remainder(out[:, rot] - y[:, rot] + math.pi, 2 * math.pi) - math.pi
+        change = wrap_angle(out[:, rot] - y[:, rot])
         info = {
             "name": "kalman",
             "rotations": self.rotations if ball or self.rotations == "angles" else "angles",
@@ -423,16 +425,7 @@ class KalmanSmoother(Smoother):
 
     def smooth(self, track):
         theta, info = self.smooth_theta(track.theta)
-        smoothed = type(track)(theta=theta, infos=list(track.infos),
-                               seconds_per_frame=track.seconds_per_frame,
-                               filtered=track.theta)
-        first = smoothed.infos[0] if smoothed.infos and isinstance(smoothed.infos[0], dict) \
-            else {}
-        if smoothed.infos:
-            smoothed.infos[0] = {**first, "smoother": info}
-        else:
-            smoothed.infos = [{"smoother": info}]
-        return smoothed
+        return dataclasses.replace(track, theta=theta, filtered=track.theta, smoother=info)
 
     def extra_repr(self) -> str:
         def s(v):

@@ -4,10 +4,10 @@ components (mode, inverse-Hessian covariance, weight) carried from frame to fram
 Per frame, :class:`MixtureInference`
 
 1. takes the prior components ``(mu_i, Sigma_i, pi_i)`` of the previous frame from
-   ``context.extras["carry"]`` (first frame: one component at the prediction, its covariance
+   ``context.previous_frame.carry`` (first frame: one component at the prediction, its covariance
    the inverse Hessian there), optionally shifted by the predictor's displacement;
 2. draws ``num`` samples from the proposal around them — the proposal sees the components as
-   ``context.previous (K, D)``, ``context.log_weights`` and ``context.extras["covariances"]``
+   ``context.previous (K, D)``, ``context.log_weights`` and ``context.covariances``
    (covariance-scaled sampling, kinematic jumps, or any proposal);
 3. optimises every sample locally (and the prior modes themselves), in one batch, within the
    joint limits: damped Gauss–Newton (Levenberg–Marquardt) with the likelihood's analytic
@@ -62,7 +62,7 @@ from torchmocap.distributions.covariance_scaled import (
 )
 from torchmocap.filters.inference import Inference, InferenceResult
 from torchmocap.filters.local import minimise_local
-from torchmocap.filters.temporal_prior import temporal_prior_precision
+from torchmocap.filters.temporal_prior import TemporalPrior
 from torchmocap.likelihoods.base import Poses, WeightedSum
 
 __all__ = [
@@ -539,14 +539,15 @@ class MixtureInference(Inference):
         with torch.no_grad():
             return self.skeleton(x.to(self.skeleton.offsets.dtype)).positions
 
-    def _prior_precision(self, like: torch.Tensor) -> torch.Tensor | None:
+    def _temporal_prior(self, like: torch.Tensor) -> TemporalPrior | None:
+        """The Gaussian temporal prior (``prior_std_deg``) in ``like``'s dtype and device."""
         if self.prior_std_deg is None:
             return None
-        return temporal_prior_precision(like.shape[-1], self._translation_dofs,
-                                        self.prior_std_deg, self.prior_translation_std,
-                                        dtype=like.dtype, device=like.device)
+        return TemporalPrior.from_stds(like.shape[-1], self._translation_dofs,
+                                       self.prior_std_deg, self.prior_translation_std,
+                                       dtype=like.dtype, device=like.device)
 
-    def _derivs_fn(self, energy, anchors: torch.Tensor | None, prec: torch.Tensor | None):
+    def _derivs_fn(self, energy, anchors: torch.Tensor | None, prior: TemporalPrior | None):
         """``x -> (V_total, grad, H, V_likelihood)`` for rows aligned with ``anchors``."""
         method = self.hessian
 
@@ -556,16 +557,15 @@ class MixtureInference(Inference):
                 raise ValueError("energy: the mixture's local optimisation needs a gradient "
                                  "(a differentiable likelihood)")
             v_lik = v
-            if prec is not None and anchors is not None:
+            if prior is not None and anchors is not None:
                 a = anchors if rows is None else anchors[rows]
-                d = x - a
-                v = v + 0.5 * (d * d * prec).sum(-1)
-                g = g + d * prec
-                H = H + torch.diag_embed(prec.expand_as(x))
+                v = v + prior.energy(x, a)
+                g = g + prior.gradient(x, a)
+                H = H + torch.diag_embed(prior.precision.to(x).expand_as(x))
             return v, g, H, v_lik
         return fn
 
-    def _optimise(self, energy, x0, anchors, prec, lo, hi):
+    def _optimise(self, energy, x0, anchors, prior, lo, hi):
         """Locally optimised ``x``, total and likelihood energies, and iterations, by the
         optimiser named in ``self.optimiser`` (:data:`LOCAL_OPTIMISERS`; ``"auto"``:
         Gauss–Newton where the likelihood has it, else L-BFGS)."""
@@ -574,16 +574,16 @@ class MixtureInference(Inference):
             mode = "gauss_newton" if gauss_newton_function(energy) is not None else "lbfgs"
         if self.iterations == 0:
             mode = "none"
-        return LOCAL_OPTIMISERS[mode](self, energy, x0, anchors, prec, lo, hi)
+        return LOCAL_OPTIMISERS[mode](self, energy, x0, anchors, prior, lo, hi)
 
-    def _optimise_none(self, energy, x0, anchors, prec, lo, hi):
+    def _optimise_none(self, energy, x0, anchors, prior, lo, hi):
         with torch.no_grad():
             v_lik = energy(x0)
-        v = v_lik if prec is None else v_lik + 0.5 * (((x0 - anchors) ** 2) * prec).sum(-1)
+        v = v_lik if prior is None else v_lik + prior.energy(x0, anchors)
         return x0, v, v_lik, 0
 
-    def _optimise_gauss_newton(self, energy, x0, anchors, prec, lo, hi):
-        fn = self._derivs_fn(energy, anchors, prec)
+    def _optimise_gauss_newton(self, energy, x0, anchors, prior, lo, hi):
+        fn = self._derivs_fn(energy, anchors, prior)
 
         def derivs(x, rows):
             v, g, H, _ = fn(x, rows)
@@ -594,30 +594,30 @@ class MixtureInference(Inference):
             v_lik = energy(x)
         return x, v, v_lik.detach(), its
 
-    def _optimise_lbfgs(self, energy, x0, anchors, prec, lo, hi):
+    def _optimise_lbfgs(self, energy, x0, anchors, prior, lo, hi):
         """L-BFGS on V (+ prior) with autograd."""
-        if prec is None:
+        if prior is None:
             total = energy
         else:
             def total(x):
-                return energy(x) + 0.5 * (((x - anchors) ** 2) * prec).sum(-1)
+                return energy(x) + prior.energy(x, anchors)
         res = minimise_local(total, x0, method="lbfgs", iterations=self.iterations,
                              lower=lo, upper=hi)
         with torch.no_grad():
             v_lik = energy(res.x)
         return res.x.detach(), res.energy.detach(), v_lik.detach(), res.iterations
 
-    def _covariances(self, energy, modes, anchors, prec) -> torch.Tensor:
-        fn = self._derivs_fn(energy, anchors, prec)
+    def _covariances(self, energy, modes, anchors, prior) -> torch.Tensor:
+        fn = self._derivs_fn(energy, anchors, prior)
         _, _, H, _ = fn(modes)
         return hessian_to_covariance(H.double(), floor=1.0 / self.max_std**2).to(modes.dtype)
 
-    def _log_weights(self, v_lik: torch.Tensor, modes=None, origins=None, prec=None
+    def _log_weights(self, v_lik: torch.Tensor, modes=None, origins=None, prior=None
                      ) -> torch.Tensor:
         lw = -v_lik.double() / self.temperature
-        if self.prior_in_weights and prec is not None and modes is not None:
-            d = modes - origins  # the temporal prior of each mode about its prior mode
-            lw = lw - 0.5 * ((d * d) * prec).sum(-1).double()
+        if self.prior_in_weights and prior is not None and modes is not None:
+            # the temporal prior of each mode about its prior mode
+            lw = lw - prior.energy(modes, origins).double()
         lw = torch.where(torch.isfinite(lw), lw, torch.full_like(lw, -1e300))
         return (lw - torch.logsumexp(lw, 0)).to(v_lik.dtype)
 
@@ -640,12 +640,12 @@ class MixtureInference(Inference):
                 key[best] -= shift
         return key
 
-    def _prior(self, energy, context, lo, hi, prec):
+    def _prior(self, energy, context, lo, hi, prior):
         """Prior components ``(means, covs, log_w)`` and whether they came from the carry."""
         prev = context.previous
         D = prev.shape[-1]
         dt = prev.dtype
-        carry = (context.extras or {}).get("carry")
+        carry = None if context.previous_frame is None else context.previous_frame.carry
         if isinstance(carry, dict) and all(k in carry for k in ("means", "covariances",
                                                                "log_weights")):
             means = torch.as_tensor(carry["means"]).to(prev)
@@ -667,7 +667,7 @@ class MixtureInference(Inference):
                   else torch.log_softmax(torch.as_tensor(context.log_weights).double(), 0)
                   .to(dt))
         means = torch.maximum(torch.minimum(means, hi), lo)
-        covs = self._covariances(energy, means, means, prec)
+        covs = self._covariances(energy, means, means, prior)
         return means, covs, lw, False
 
     # ------------------------------------------------------------------ one frame
@@ -678,8 +678,8 @@ class MixtureInference(Inference):
         if not isinstance(prev, torch.Tensor) or prev.dim() not in (1, 2):
             raise ValueError("context.previous: expected a (D,) prediction or (K, D) modes")
         lo, hi = self._bounds(prev)
-        prec = self._prior_precision(prev)
-        p_means, p_covs, p_lw, from_carry = self._prior(energy, context, lo, hi, prec)
+        prior = self._temporal_prior(prev)
+        p_means, p_covs, p_lw, from_carry = self._prior(energy, context, lo, hi, prior)
         K0 = p_means.shape[0]
         modes, covs, lw = p_means, p_covs, p_lw
         mode_origin = torch.arange(K0, device=prev.device)
@@ -690,10 +690,8 @@ class MixtureInference(Inference):
         its_total = 0
         t_prop = t_opt = 0.0
         for layer in range(self.layers):
-            extras = dict(context.extras or {})
-            extras.update(covariances=covs, modes=modes)
             ctx = dataclasses.replace(context, previous=modes, log_weights=lw, std=None,
-                                      scale=1.0, extras=extras)
+                                      scale=1.0, covariances=covs, hessians=None)
             ta = time.perf_counter()
             drawn = proposal.sample(ctx, num, generator)
             t_prop += time.perf_counter() - ta
@@ -721,7 +719,7 @@ class MixtureInference(Inference):
                 jumped = torch.cat([torch.zeros(K0, dtype=torch.bool, device=prev.device),
                                     jumped])
             ta = time.perf_counter()
-            x, v, v_lik, its = self._optimise(energy, x0, anchors, prec, lo, hi)
+            x, v, v_lik, its = self._optimise(energy, x0, anchors, prior, lo, hi)
             t_opt += time.perf_counter() - ta
             its_total += its
             samples += x0.shape[0]
@@ -739,8 +737,8 @@ class MixtureInference(Inference):
             keep = reps[: self.components]
             modes = X[keep]
             mode_origin = ORIG[keep]
-            covs = self._covariances(energy, modes, ANCH[keep], prec)
-            lw = self._log_weights(VL[keep], modes, p_means[mode_origin], prec)
+            covs = self._covariances(energy, modes, ANCH[keep], prior)
+            lw = self._log_weights(VL[keep], modes, p_means[mode_origin], prior)
         v_modes = VL[keep]
         final_lw, assign = bhattacharyya_reweight(modes, covs, lw, p_means, p_covs, p_lw,
                                                   self.discard)

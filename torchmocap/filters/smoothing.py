@@ -18,7 +18,7 @@ transition of :class:`~torchmocap.filters.TemporalMapEstimator` (rotation differ
 pose. This is a fixed-interval smoother: it sees the future, so compare it with other smoothers,
 not with filters (the trackers' ``Track.filtered`` keeps the filtered estimates).
 
-Functional core: :func:`temporal_log_prior`, :func:`viterbi_path`; module:
+Functional core: :func:`viterbi_path`; module:
 :class:`ViterbiSmoother` (``tracker.smoother``; Hydra: ``+smoother@tracker.smoother=viterbi``).
 :class:`SmootherChain` runs smoothers one after the other (``smoother=viterbi_kalman``: the mode
 sequence first, then the Kalman smoother removes the jitter left within it).
@@ -26,28 +26,18 @@ sequence first, then the Kalman smoother removes the jitter left within it).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 
 import torch
 from torch import nn
 
-__all__ = ["Smoother", "SmootherChain", "ViterbiSmoother", "temporal_log_prior", "viterbi_path"]
+from torchmocap.filters.temporal_prior import TemporalPrior
+
+__all__ = ["Smoother", "SmootherChain", "ViterbiSmoother", "viterbi_path"]
 
 EMISSIONS = ("energy", "weights")
-
-
-def temporal_log_prior(diff: torch.Tensor, rotation: torch.Tensor, rotation_std: float,
-                       translation_std: float) -> torch.Tensor:
-    """``-½ Σ_d (δ_d / σ_d)²`` over the last dimension of pose differences ``diff (..., D)``:
-    the log of a Gaussian temporal prior up to a constant. ``rotation (D,)`` bool marks the
-    rotation DoFs (their differences are wrapped to ``(-π, π]``, ``σ = rotation_std`` radians);
-    the others are translations (``σ = translation_std`` metres). Returns ``(...)`` float64."""
-    rot = rotation.to(diff.device)
-    d = torch.where(rot, torch.remainder(diff + math.pi, 2 * math.pi) - math.pi, diff)
-    std = torch.where(rot, torch.tensor(rotation_std, dtype=d.dtype, device=d.device),
-                      torch.tensor(translation_std, dtype=d.dtype, device=d.device))
-    return -0.5 * ((d / std) ** 2).sum(-1).to(torch.float64)
 
 
 def viterbi_path(emissions: Sequence[torch.Tensor], transition) -> tuple[list[int], float]:
@@ -117,10 +107,15 @@ class ViterbiSmoother(Smoother):
                 raise ValueError(f"{name}: expected a finite number > 0, got {v!r}")
         if emission not in EMISSIONS:
             raise ValueError(f"emission: expected one of {EMISSIONS}, got {emission!r}")
-        self.rotation_std = math.radians(rotation_std_deg)
+        self.rotation_std_deg = float(rotation_std_deg)
         self.translation_std = float(translation_std)
         self.emission = emission
         self.translation_dofs = [] if skeleton is None else list(skeleton.translation_dofs)
+
+    def transition_prior(self, num_dofs: int) -> TemporalPrior:
+        """The Gaussian of one frame's pose change (``rotation_std_deg``, ``translation_std``)."""
+        return TemporalPrior.from_stds(num_dofs, self.translation_dofs, self.rotation_std_deg,
+                                       self.translation_std)
 
     def check(self, inference) -> None:
         if not getattr(inference, "keeps_hypotheses", False):
@@ -137,12 +132,12 @@ class ViterbiSmoother(Smoother):
         scores = [torch.zeros(1, dtype=torch.float64)]
         key = "mode_energy" if self.emission == "energy" else "hypothesis_weights"
         for t, info in enumerate(track.infos[1:], start=1):
-            if not isinstance(info, dict) or not info.get("hypotheses") or key not in info:
+            if not info.hypotheses or getattr(info, key) is None:
                 raise ValueError(f"track.infos[{t}]: no 'hypotheses' and '{key}' - the Viterbi "
                                  "smoother needs an inference that keeps several hypotheses "
                                  "per frame (inference=mixture)")
-            H = torch.as_tensor(info["hypotheses"], dtype=torch.float64)
-            v = torch.as_tensor(info[key], dtype=torch.float64)
+            H = torch.as_tensor(info.hypotheses, dtype=torch.float64)
+            v = torch.as_tensor(getattr(info, key), dtype=torch.float64)
             if H.dim() != 2 or H.shape[1] != D or v.shape != (H.shape[0],):
                 raise ValueError(f"track.infos[{t}]: expected hypotheses (K, {D}) and {key} "
                                  f"(K,), got {tuple(H.shape)} and {tuple(v.shape)}")
@@ -156,12 +151,10 @@ class ViterbiSmoother(Smoother):
     def path(self, track) -> tuple[torch.Tensor, list[int], float]:
         """``(theta (T, D), chosen mode per frame, log score)`` of the MAP mode sequence."""
         states, scores = self.candidates(track)
-        rot = torch.ones(states[0].shape[-1], dtype=torch.bool)
-        rot[self.translation_dofs] = False
+        prior = self.transition_prior(states[0].shape[-1])
 
         def transition(t):
-            diff = states[t][None, :, :] - states[t - 1][:, None, :]
-            return temporal_log_prior(diff, rot, self.rotation_std, self.translation_std)
+            return prior.log_prob(states[t][None, :, :], states[t - 1][:, None, :])
 
         path, score = viterbi_path(scores, transition)
         theta = torch.stack([states[t][k] for t, k in enumerate(path)])
@@ -169,16 +162,12 @@ class ViterbiSmoother(Smoother):
 
     def smooth(self, track):
         theta, path, _ = self.path(track)
-        smoothed = type(track)(theta=theta, infos=list(track.infos),
-                               seconds_per_frame=track.seconds_per_frame,
-                               filtered=track.theta)
-        smoothed.infos[0] = {**smoothed.infos[0], "smoother": {
+        return dataclasses.replace(track, theta=theta, filtered=track.theta, smoother={
             "name": "viterbi", "modes": path,
-            "changed_frames": int((theta != track.theta).any(-1).sum())}}
-        return smoothed
+            "changed_frames": int((theta != track.theta).any(-1).sum())})
 
     def extra_repr(self) -> str:
-        return (f"rotation_std_deg={math.degrees(self.rotation_std):g}, "
+        return (f"rotation_std_deg={self.rotation_std_deg:g}, "
                 f"translation_std={self.translation_std:g}, emission={self.emission!r}")
 
 
@@ -191,7 +180,7 @@ class SmootherChain(Smoother):
             ``conf/smoother/viterbi_kalman.yaml``).
 
     The returned track's ``filtered`` is the tracker's own estimates (those the first stage
-    received), ``theta`` the last stage's output; ``infos[0]["smoother"]`` is
+    received), ``theta`` the last stage's output; its ``smoother`` report is
     ``{"name": "a+b", "stages": [report of a, report of b]}``, each stage's report with its
     output track under ``theta`` (``torchmocap-track`` writes each stage's errors to
     ``metrics.json`` instead: an ablation of the stages in one run). Every stage's ``check``
@@ -226,17 +215,9 @@ class SmootherChain(Smoother):
         out = track
         for st in self.stages:
             out = st.smooth(out)
-            first = out.infos[0] if out.infos and isinstance(out.infos[0], dict) else {}
-            reports.append({**first.get("smoother", {"name": type(st).__name__}),
+            reports.append({**(out.smoother or {"name": type(st).__name__}),
                             "theta": out.theta})
-        out = type(track)(theta=out.theta, infos=list(out.infos),
-                          seconds_per_frame=out.seconds_per_frame, filtered=filtered)
-        first = out.infos[0] if out.infos and isinstance(out.infos[0], dict) else {}
         report = {"name": "+".join(str(r.get("name", "?")) for r in reports),
                   "changed_frames": int((out.theta != filtered).any(-1).sum()),
                   "stages": reports}
-        if out.infos:
-            out.infos[0] = {**first, "smoother": report}
-        else:
-            out.infos = [{"smoother": report}]
-        return out
+        return dataclasses.replace(out, filtered=filtered, smoother=report)

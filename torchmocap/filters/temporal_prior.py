@@ -1,11 +1,20 @@
-"""Gaussian temporal prior about the predicted pose.
+"""Gaussian temporal prior about a pose: the one implementation every component uses (the
+annealer's weights, the mixture tracker's optimised energy and mode weights, the temporal MAP
+estimator, the Viterbi smoother's transitions).
 
-``R(θ) = ½ Σ_d ((θ_d − θ̂_d) / σ_d)²`` with ``θ̂`` the prediction, ``σ_d`` one angle for every
-rotation DoF and one length for the root translation; rotation differences are wrapped to
-``(−π, π]``. In annealing it multiplies every layer's weights by ``exp(−R)`` — untempered, so
-layer ``k`` targets ``exp(−β_k V(θ)) p(θ | θ̂)``: the search leaves the prediction's basin only
-where the evidence pays for it, the locality a descent from the prediction has by construction.
-``D`` pose coordinates, ``P`` poses.
+``R(θ; m) = ½ Σ_d ((θ_d − m_d) / σ_d)²`` with ``σ_d`` one angle for every rotation DoF and one
+length for the root translation; rotation differences are wrapped to ``(−π, π]``
+(:func:`~torchmocap.geometry.wrap_angle`). In annealing it multiplies every layer's weights by
+``exp(−R)`` — untempered, so layer ``k`` targets ``exp(−β_k V(θ)) p(θ | m)``: the search
+leaves the prediction's basin only where the evidence pays for it, the locality a descent from
+the prediction has by construction. ``D`` pose coordinates, ``P`` poses.
+
+Example:
+    >>> from torchmocap.skeleton import human31
+    >>> prior = TemporalPrior.for_skeleton(human31(), std_deg=20.0, translation_std=0.1)
+    >>> x = torch.zeros(5, 31)
+    >>> prior.energy(x, torch.zeros(31)).shape
+    torch.Size([5])
 """
 
 from __future__ import annotations
@@ -14,6 +23,9 @@ import math
 from collections.abc import Sequence
 
 import torch
+from torch import nn
+
+from torchmocap.geometry import wrap_angle
 
 __all__ = ["TemporalPrior", "temporal_prior_precision"]
 
@@ -33,26 +45,71 @@ def temporal_prior_precision(num_dofs: int, translation_dofs: Sequence[int], std
     return 1.0 / (s * s)
 
 
-class TemporalPrior:
-    """``x (P, D) -> ½ Σ_d prec_d · wrap(x_d − mean_d)² (P,)``: the negative log density (up
-    to a constant) of a Gaussian about ``mean``; differentiable.
+class TemporalPrior(nn.Module):
+    """A Gaussian about a mean pose: ``energy(x, mean) = ½ Σ_d prec_d · wrap(x_d − mean_d)²``.
 
     Args:
-        mean: ``(D,)`` the predicted pose.
         precision: ``(D,)`` ``1 / σ²`` (:func:`temporal_prior_precision`).
         rotation: ``(D,)`` bool, the coordinates whose differences are wrapped to ``(−π, π]``.
+
+    Buffers follow ``.to(device)``; the energy is computed in the dtype of ``x``.
     """
 
-    def __init__(self, mean: torch.Tensor, precision: torch.Tensor,
-                 rotation: torch.Tensor) -> None:
-        if mean.dim() != 1 or precision.shape != mean.shape or rotation.shape != mean.shape:
-            raise ValueError(f"mean, precision, rotation: expected three (D,) tensors, got "
-                             f"{tuple(mean.shape)}, {tuple(precision.shape)}, "
-                             f"{tuple(rotation.shape)}")
-        self.mean, self.precision, self.rotation = mean.detach(), precision, rotation
+    def __init__(self, precision: torch.Tensor, rotation: torch.Tensor) -> None:
+        super().__init__()
+        if precision.dim() != 1 or rotation.shape != precision.shape:
+            raise ValueError(f"precision, rotation: expected two (D,) tensors, got "
+                             f"{tuple(precision.shape)}, {tuple(rotation.shape)}")
+        if rotation.dtype != torch.bool:
+            raise ValueError(f"rotation: expected a bool mask, got {rotation.dtype}")
+        self.register_buffer("precision", precision)
+        self.register_buffer("rotation", rotation)
 
-    def __call__(self, x: torch.Tensor) -> torch.Tensor:
-        d = x - self.mean.to(x)
-        wrapped = torch.remainder(d + math.pi, 2 * math.pi) - math.pi
-        d = torch.where(self.rotation.to(x.device), wrapped, d)
+    @classmethod
+    def for_skeleton(cls, skeleton, std_deg: float, translation_std: float,
+                     dtype: torch.dtype = torch.float64) -> TemporalPrior:
+        """``std_deg`` on every rotation DoF of ``skeleton``, ``translation_std`` metres on its
+        root translation."""
+        return cls.from_stds(skeleton.num_dofs, skeleton.translation_dofs, std_deg,
+                             translation_std, dtype)
+
+    @classmethod
+    def from_stds(cls, num_dofs: int, translation_dofs: Sequence[int], std_deg: float,
+                  translation_std: float, dtype: torch.dtype = torch.float64,
+                  device: torch.device | str | None = None) -> TemporalPrior:
+        """The prior of ``num_dofs`` coordinates, ``translation_dofs`` in metres (std
+        ``translation_std``), the others angles (std ``std_deg`` degrees)."""
+        prec = temporal_prior_precision(num_dofs, translation_dofs, std_deg, translation_std,
+                                        dtype=dtype, device=device)
+        rot = torch.ones(num_dofs, dtype=torch.bool, device=device)
+        rot[list(translation_dofs)] = False
+        return cls(prec, rot)
+
+    @property
+    def num_dofs(self) -> int:
+        return int(self.precision.shape[0])
+
+    def difference(self, x: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
+        """``x − mean`` ``(..., D)`` with rotation differences wrapped to ``(−π, π]``."""
+        d = x - mean.to(x)
+        return torch.where(self.rotation.to(x.device), wrap_angle(d), d)
+
+    def energy(self, x: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
+        """``(...)`` ``½ Σ_d prec_d d_d²`` of poses ``x (..., D)`` about ``mean``
+        (broadcastable); differentiable in ``x``."""
+        d = self.difference(x, mean)
         return 0.5 * (d * d * self.precision.to(x)).sum(-1)
+
+    def gradient(self, x: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
+        """``∂ energy / ∂ x`` ``(..., D)`` (its Hessian is ``diag(precision)``)."""
+        return self.difference(x, mean) * self.precision.to(x)
+
+    def log_prob(self, x: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
+        """``−energy`` in float64: the log density up to a constant."""
+        return -self.energy(x.to(torch.float64), mean.to(torch.float64))
+
+    def forward(self, x: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
+        return self.energy(x, mean)
+
+    def extra_repr(self) -> str:
+        return f"num_dofs={self.num_dofs}, translations={int((~self.rotation).sum())}"

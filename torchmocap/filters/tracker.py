@@ -28,8 +28,6 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
-from dataclasses import dataclass, field
-from typing import Any
 
 import torch
 from torch import nn
@@ -37,14 +35,13 @@ from torch import nn
 from torchmocap.filters.estimators import Estimator
 from torchmocap.filters.inference import Inference
 from torchmocap.filters.smoothing import Smoother
+from torchmocap.filters.state import FrameInfo, Track, TrackState
 from torchmocap.likelihoods.base import FrameEnergy, Likelihood
 from torchmocap.proposals.base import Proposal, ProposalContext
 
 __all__ = [
     "CheckpointError",
     "MissingObservationError",
-    "Track",
-    "TrackState",
     "Tracker",
 ]
 
@@ -55,50 +52,6 @@ class MissingObservationError(ValueError):
 
 class CheckpointError(ValueError):
     """A checkpoint cannot be resumed by this tracker (other settings, data or format)."""
-
-
-@dataclass
-class TrackState:
-    """Tracker state between frames (what a checkpoint stores).
-
-    Attributes:
-        history: ``(<=3, D)`` last estimates, oldest first.
-        frame: index of the last tracked frame.
-        generator_state: the random generator's state.
-        estimates: ``T`` estimates ``(D,)`` so far.
-        infos: per-frame diagnostics.
-        particles, log_weights: the last frame's particle set ``(P, D)`` and its normalised log
-            weights ``(P,)`` (None when the inference keeps none).
-        carry: what the inference keeps for the next frame (``InferenceResult.carry``).
-    """
-
-    history: torch.Tensor
-    frame: int
-    generator_state: torch.Tensor
-    estimates: list = field(default_factory=list)
-    infos: list = field(default_factory=list)
-    particles: torch.Tensor | None = None
-    log_weights: torch.Tensor | None = None
-    carry: dict | None = None
-
-
-@dataclass
-class Track:
-    """Output of :meth:`Tracker.run`.
-
-    Attributes:
-        theta: ``(T, D)`` estimates (frame 0 is the initial pose); smoothed when the tracker
-            has a ``smoother``.
-        infos: per-frame diagnostics (ESS and beta per layer, timings, proposal statistics).
-        seconds_per_frame: mean tracking time of frames 1..T-1.
-        filtered: ``(T, D)`` the filtered (per-frame) estimates when ``theta`` is smoothed,
-            else ``None``.
-    """
-
-    theta: torch.Tensor
-    infos: list
-    seconds_per_frame: float
-    filtered: torch.Tensor | None = None
 
 
 def _check_component(obj, kind, name: str):
@@ -328,7 +281,7 @@ class Tracker(nn.Module):
             frame0 = self._on_device(frame0)
         g = torch.Generator(device=theta0.device).manual_seed(self.seed if seed is None
                                                                else int(seed))
-        info: dict[str, Any] = {"frame": 0, "initial": True}
+        info = FrameInfo(frame=0, initial=True)
         particles = log_w = carry = None
         t_init = time.perf_counter()
         if self.refine_first_frame:
@@ -337,25 +290,25 @@ class Tracker(nn.Module):
             self._check_frame(frame0)
             t0 = time.perf_counter()
             est, res, terms = self._infer(self._context(theta0, frame0), frame0, g)
-            info.update(res.info)
-            info.update(seconds=time.perf_counter() - t0, energy=terms)
+            info = FrameInfo.from_dict(res.info, frame=0, initial=True,
+                                       seconds=time.perf_counter() - t0, energy=terms)
             theta0, particles, log_w, carry = est, res.particles, res.log_weights, res.carry
         if self.body_fit is not None and frame0 is not None:
             t0 = time.perf_counter()
-            info["body_fit"] = self.body_fit(theta0, frame0)
-            info["body_fit"]["seconds"] = time.perf_counter() - t0
+            info.body_fit = self.body_fit(theta0, frame0)
+            info.body_fit["seconds"] = time.perf_counter() - t0
             if self.refine_first_frame and self.refit_passes:
                 theta0, particles, log_w, carry = self._refit(theta0, frame0, g, info,
                                                               (particles, log_w, carry))
             # the whole first frame: the refinement, the body fit and the refit passes
-            info["seconds"] = time.perf_counter() - t_init
+            info.seconds = time.perf_counter() - t_init
         if self.manifold is not None and frame0 is not None and frame0.imu is not None:
             self.manifold.calibrate(theta0, self._sensors(frame0))
         return TrackState(history=theta0[None].clone(), frame=0, generator_state=g.get_state(),
                           estimates=[theta0.clone()], infos=[info], particles=particles,
                           log_weights=log_w, carry=carry)
 
-    def _refit(self, theta0: torch.Tensor, frame0, g: torch.Generator, info: dict, kept):
+    def _refit(self, theta0: torch.Tensor, frame0, g: torch.Generator, info: FrameInfo, kept):
         """The ``refit_passes`` of :meth:`init`: refine the pose ``(D,)`` with the fitted body,
         keep it when its energy is lower, refit the body; returns the pose and the particle
         set, weights and carry of the inference that produced it."""
@@ -376,12 +329,12 @@ class Tracker(nn.Module):
             passes.append({"energy_before": float(v[0]), "energy_after": float(v[1]),
                            "kept": better, "seconds": time.perf_counter() - t0,
                            "body_fit": fit})
-        info["refit"] = passes
+        info.refit = passes
         return (theta0, *kept)
 
     # ------------------------------------------------------------------ one frame
     def step(self, state: TrackState, frame, energy: FrameEnergy | None = None
-             ) -> tuple[TrackState, torch.Tensor, dict]:
+             ) -> tuple[TrackState, torch.Tensor, FrameInfo]:
         """Track one frame (as the tracker may see it, :meth:`observe`): returns the new
         state, the estimate ``(D,)`` and the frame's diagnostics. ``energy``: the frame's
         :meth:`frame_energy` when the caller built it already (batched tracking shares one
@@ -392,14 +345,12 @@ class Tracker(nn.Module):
         g.set_state(state.generator_state)
         t0 = time.perf_counter()
         pred = self.predictor(state.history)
-        context = self._context(pred, frame)
         # the previous frame's particle set and whatever the inference carries between frames
-        context.extras.update(particles=state.particles, log_weights=state.log_weights,
-                              carry=state.carry, last_estimate=state.history[-1],
-                              history=state.history)
+        context = dataclasses.replace(self._context(pred, frame),
+                                      previous_frame=state.previous_frame())
         est, res, terms = self._infer(context, frame, g, energy)
-        info: dict[str, Any] = {"frame": state.frame + 1, "seconds": time.perf_counter() - t0,
-                                "energy": terms, **res.info}
+        info = FrameInfo.from_dict(res.info, frame=state.frame + 1,
+                                   seconds=time.perf_counter() - t0, energy=terms)
         new = TrackState(
             history=torch.cat([state.history, est[None]])[-3:],
             frame=state.frame + 1,
@@ -450,7 +401,7 @@ class Tracker(nn.Module):
         done = 0
         for t in bar:
             state, _, info = self.step(state, self.observe(sequence.frame(t), tracking))
-            bar.set_postfix(s=f"{info['seconds']:.2f}")
+            bar.set_postfix(s=f"{info.seconds:.2f}")
             for cb in callbacks:
                 cb(state, info)
             done += 1
@@ -460,7 +411,7 @@ class Tracker(nn.Module):
                 if checkpoint is not None:
                     self.save_checkpoint(state, checkpoint, fingerprint)
                 break
-        secs = [i["seconds"] for i in state.infos[1:] if "seconds" in i]
+        secs = [i.seconds for i in state.infos[1:] if i.seconds is not None]
         return self.finish(Track(theta=torch.stack(state.estimates), infos=state.infos,
                                  seconds_per_frame=float(sum(secs) / max(len(secs), 1))))
 
@@ -473,7 +424,7 @@ class Tracker(nn.Module):
                         ) -> None:
         """Atomically write the state (and the sensor calibration) to ``path``."""
         payload = {"format": "torchmocap-track-checkpoint", "version": 2,
-                   "state": dataclasses.asdict(state), "name": self.name, "seed": self.seed,
+                   "state": state.to_dict(), "name": self.name, "seed": self.seed,
                    "fingerprint": fingerprint,
                    "sensor_to_bone": None if self.manifold is None
                    else self.manifold.sensor_to_bone.detach().clone(),
@@ -505,7 +456,7 @@ class Tracker(nn.Module):
             raise CheckpointError(
                 f"checkpoint {path}: written for other settings or data (fingerprint "
                 f"{payload.get('fingerprint')} != {fingerprint}); remove it to start over")
-        state = TrackState(**payload["state"])
+        state = TrackState.from_dict(payload["state"])
         if num_frames is not None and state.frame >= num_frames:
             raise CheckpointError(f"checkpoint {path}: has {state.frame + 1} frames, the "
                                   f"sequence only {num_frames}")

@@ -1,5 +1,6 @@
 """Rotation and rigid-motion geometry: SO(3)/SE(3) maps, quaternions (w, x, y, z), twists."""
 
+from torchmocap.geometry.angles import wrap_angle
 from torchmocap.geometry.flips import RaySphereIntersection, flip_child, ray_sphere_intersections
 from torchmocap.geometry.quaternions import (
     axis_angle_to_quaternion,
@@ -51,4 +52,5 @@ __all__ = [
     "so3_log",
     "transform_points",
     "vee",
+    "wrap_angle",
 ]

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from torchmocap.geometry import quaternion_to_matrix
+from torchmocap.geometry import quaternion_to_matrix, wrap_angle
 from torchmocap.geometry.subproblems import (
     axes_are_orthogonal,
     three_axis_decomposition,
@@ -658,7 +658,7 @@ class SensorManifold(nn.Module):
             cand = cand + two_pi * (up.to(dtype) - dn.to(dtype))
         inside = ((cand >= lo) & (cand <= hi)).all(0)  # (2, S, B)
         r = ref_p.transpose(0, 1)[:, None].contiguous() if ref_p is not None else 0.0
-        diff = torch.remainder(cand - r + math.pi, two_pi) - math.pi
+        diff = wrap_angle(cand - r)
         score = diff.abs().sum(0) + 100.0 * (~inside).to(dtype)  # (2, S, B)
         pick = score[1] < score[0]  # (S, B)
         chosen = torch.where(pick, cand[:, 1], cand[:, 0])  # (3, S, B)

@@ -4,6 +4,7 @@ the sensor-noise models of manifold sampling."""
 from torchmocap.proposals.angular import UPPER_BODY, AngularPriorProposal, free_dofs
 from torchmocap.proposals.base import (
     GaussianDiffusionProposal,
+    PreviousFrame,
     Proposal,
     ProposalContext,
     Proposed,
@@ -54,6 +55,7 @@ __all__ = [
     "AngularPriorProposal",
     "BOUNDARIES",
     "CovarianceScaledProposal",
+    "PreviousFrame",
     "GaussianDiffusionProposal",
     "InSilhouette",
     "JointCriterion",

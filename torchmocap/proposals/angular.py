@@ -20,6 +20,7 @@ from collections.abc import Sequence
 import torch
 
 from torchmocap.distributions.truncated_normal import TruncatedNormal
+from torchmocap.geometry import wrap_angle
 from torchmocap.proposals.base import (
     Proposal,
     ProposalContext,
@@ -68,7 +69,7 @@ class AngularPriorProposal(Proposal):
         prior_scale: the prior's std relative to this proposal's (``log_prior`` is evaluated
             with it; 1 = the proposal is the prior).
         speed_gain: widens each DoF's std to ``sqrt(σ² + (g · |Δθ|)²)``, ``Δθ`` the DoF's
-            change between the tracker's last two estimates (``context.extras["history"]``;
+            change between the tracker's last two estimates (``context.history``;
             angles along the shorter arc) — the angular counterpart of
             :class:`~torchmocap.proposals.SpatialPriorProposal`'s ``speed_gain``; the prior of
             ``log_prior`` widens with it. 0 (default): the fixed spread of eq. 3.
@@ -89,9 +90,7 @@ class AngularPriorProposal(Proposal):
         self.speed_gain = float(speed_gain)
         self.num_dofs = skeleton.num_dofs
         self.prior_scale = float(prior_scale)
-        rotational = torch.ones(skeleton.num_dofs, dtype=torch.bool)
-        rotational[skeleton.translation_dofs] = False
-        self.register_buffer("rotational", rotational)
+        self.register_buffer("rotational", skeleton.rotation_mask().cpu())
         self.register_buffer("free", free_dofs(skeleton, joints))
         std = skeleton_std(skeleton, rotation_std_deg, translation_std)
         self.register_buffer("std", std[self.free].clone())
@@ -115,12 +114,12 @@ class AngularPriorProposal(Proposal):
     def _spread(self, context: ProposalContext) -> torch.Tensor:
         """Per-DoF std ``(d,)`` of the tracked DoFs: ``std``, widened by ``speed_gain`` times
         each DoF's change between the last two estimates when the tracker passes them."""
-        history = (context.extras or {}).get("history")
+        history = context.history
         if self.speed_gain == 0 or history is None or history.shape[0] < 2:
             return self.std
         delta = (history[-1] - history[-2]).to(self.std)
         rot = self.rotational.to(delta.device)
-        delta = torch.where(rot, torch.remainder(delta + math.pi, 2 * math.pi) - math.pi, delta)
+        delta = torch.where(rot, wrap_angle(delta), delta)
         d = self.coordinates(delta).abs() * self.speed_gain
         return torch.sqrt(self.std.square() + d.square())
 

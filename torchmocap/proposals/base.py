@@ -33,6 +33,7 @@ from torch import nn
 from torchmocap.proposals.bounds import BOUNDARIES, bound_particles
 
 __all__ = [
+    "PreviousFrame",
     "Proposal",
     "ProposalContext",
     "Proposed",
@@ -40,6 +41,27 @@ __all__ = [
     "select_ancestors",
     "as_std",
 ]
+
+
+@dataclass
+class PreviousFrame:
+    """What a frame's inference and proposal may use of the frames before it (the tracker's
+    state between frames; ``None`` fields where the tracker has none yet).
+
+    Attributes:
+        estimate: ``(D,)`` the previous frame's estimate.
+        history: ``(H, D)`` the last ``H <= 3`` estimates, oldest first.
+        particles: ``(P, D)`` the previous frame's final particle set.
+        log_weights: ``(P,)`` its normalised log weights.
+        carry: whatever the inference kept for the next frame
+            (:attr:`~torchmocap.filters.InferenceResult.carry`, e.g. a mixture's components).
+    """
+
+    estimate: torch.Tensor | None = None
+    history: torch.Tensor | None = None
+    particles: torch.Tensor | None = None
+    log_weights: torch.Tensor | None = None
+    carry: Any = None
 
 
 @dataclass
@@ -58,7 +80,12 @@ class ProposalContext:
         std: optional per-coordinate std ``(d,)`` replacing the proposal's own diffusion std
             (set per annealing layer).
         scale: factor on the proposal's own std (ignored when ``std`` is given).
-        extras: anything else a proposal needs.
+        previous_frame: the tracker's state from the frames before (:class:`PreviousFrame`),
+            None outside a tracker or on the first frame.
+        covariances: optional ``(K, D, D)`` (or ``(D, D)``) covariances of the ``previous``
+            modes (covariance-scaled sampling, kinematic jumps).
+        hessians: optional ``(K, D, D)`` / ``(D, D)`` Hessians of the energy at the modes
+            (inverted into covariances where no ``covariances`` are given).
     """
 
     previous: torch.Tensor
@@ -68,7 +95,19 @@ class ProposalContext:
     frame: Any = None
     std: torch.Tensor | None = None
     scale: float = 1.0
-    extras: dict[str, Any] = field(default_factory=dict)
+    previous_frame: PreviousFrame | None = None
+    covariances: torch.Tensor | None = None
+    hessians: torch.Tensor | None = None
+
+    @property
+    def last_estimate(self) -> torch.Tensor | None:
+        """``(D,)`` the previous frame's estimate, when the tracker passed one."""
+        return None if self.previous_frame is None else self.previous_frame.estimate
+
+    @property
+    def history(self) -> torch.Tensor | None:
+        """``(H, D)`` the tracker's last estimates, oldest first, when it passed them."""
+        return None if self.previous_frame is None else self.previous_frame.history
 
 
 @dataclass

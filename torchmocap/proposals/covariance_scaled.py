@@ -5,10 +5,10 @@
 its heavy-tailed (Student-t / Cauchy) version with the same scale matrices — where the modes
 ``mu_k`` are ``context.previous`` (``(K, D)`` or one ``(D,)``), the weights ``pi_k`` come from
 ``context.log_weights`` and ``Sigma_k`` is the inverse (Gauss–Newton) Hessian of the cost at each
-mode, handed in through ``context.extras``:
+mode, handed in through the context:
 
-* ``extras["covariances"]``: ``(K, D, D)`` or ``(D, D)`` covariances, else
-* ``extras["hessians"]``: ``(K, D, D)`` / ``(D, D)`` Hessians, inverted here
+* ``context.covariances``: ``(K, D, D)`` or ``(D, D)`` covariances, else
+* ``context.hessians``: ``(K, D, D)`` / ``(D, D)`` Hessians, inverted here
   (:func:`~torchmocap.distributions.hessian_to_covariance`, eigenvalues floored at
   ``1 / max_std^2``), else
 * the proposal's own diagonal ``std`` (rotations ``std_deg``, translations
@@ -30,7 +30,7 @@ Example:
     >>> from torchmocap.proposals import ProposalContext
     >>> sk = human31()
     >>> css = CovarianceScaledProposal(sk, scale=8.0)
-    >>> ctx = ProposalContext(previous=sk.zero_pose(), extras={"covariances": torch.eye(31)})
+    >>> ctx = ProposalContext(previous=sk.zero_pose(), covariances=torch.eye(31))
     >>> css.sample(ctx, 10, torch.Generator().manual_seed(0)).particles.shape
     torch.Size([10, 31])
 """
@@ -82,22 +82,21 @@ def mode_set(context: ProposalContext, num_dofs: int) -> tuple[torch.Tensor, tor
 
 def context_covariances(context: ProposalContext, K: int, num_dofs: int, like: torch.Tensor,
                         max_std: float | None = None) -> torch.Tensor | None:
-    """``(K, D, D)`` covariances of the modes from ``context.extras`` (``covariances`` or
+    """``(K, D, D)`` covariances of the modes from the context (``covariances``, else
     ``hessians``), or None when the context has neither."""
-    ex = context.extras or {}
     D = num_dofs
     for key in ("covariances", "hessians"):
-        m = ex.get(key)
+        m = getattr(context, key)
         if m is None:
             continue
         m = torch.as_tensor(m).to(dtype=like.dtype, device=like.device)
         if m.shape == (D, D):
             m = m.expand(K, D, D)
         if m.shape != (K, D, D):
-            raise ValueError(f"context.extras[{key!r}]: expected ({D}, {D}) or ({K}, {D}, {D}), "
+            raise ValueError(f"context.{key}: expected ({D}, {D}) or ({K}, {D}, {D}), "
                              f"got {tuple(m.shape)}")
         if not bool(torch.isfinite(m).all()):
-            raise ValueError(f"context.extras[{key!r}]: expected finite values")
+            raise ValueError(f"context.{key}: expected finite values")
         if key == "hessians":
             floor = 0.0 if max_std is None else 1.0 / max_std**2
             m = hessian_to_covariance(m, floor=floor)
@@ -117,7 +116,7 @@ class CovarianceScaledProposal(Proposal):
         spherical: SS — isotropic covariance of the same volume as each ``Sigma_k``.
         std_deg, translation_std: the own diagonal std (rotations in degrees, root translation
             in metres) used when the context brings no covariance.
-        max_std: eigenvalue floor ``1 / max_std^2`` when inverting ``extras["hessians"]``.
+        max_std: eigenvalue floor ``1 / max_std^2`` when inverting ``context.hessians``.
         boundary: ``"clamp"`` (project onto the limits), ``"reflect"`` or ``"none"``.
         uniform_mix: fraction ``u`` of samples whose mode is drawn uniformly (the mode
             probabilities are ``(1 - u) pi_k + u / K``), so low-weight modes are explored.

@@ -23,7 +23,7 @@ has no DoF (the human31 arms: the wrist is rigid) is flipped at its hinge and en
 forearm moves the hand's image slightly (human31 cannot keep it).
 
 Chain selection (Fig. 5, ``SelectSamplingChain``) per mode, from its covariance ``Sigma = V diag
-(sigma^2) V^T`` (``context.extras["covariances"]`` ``(K, D, D)``):
+(sigma^2) V^T`` (``context.covariances`` ``(K, D, D)``):
 ``vote(C) = sum_{i in dofs(C)} sum_j sigma_j |v_j[i]|`` — the uncertainty of the chain's DoFs along
 the principal directions, weighted by their standard deviations (absolute values: the sign of an
 eigenvector is arbitrary). ``select``: ``"vote"`` takes the ``num_chains`` best chains,
@@ -466,13 +466,13 @@ class KinematicJumpProposal(Proposal):
         D = self.skeleton.num_dofs
         modes, _ = mode_set(context, D)
         K = modes.shape[0]
-        covs = (context.extras or {}).get("covariances")
+        covs = context.covariances
         if covs is not None:
             covs = torch.as_tensor(covs).to(modes)
             if covs.shape == (D, D):
                 covs = covs.expand(K, D, D)
             if covs.shape != (K, D, D):
-                raise ValueError(f"context.extras['covariances']: expected ({K}, {D}, {D}), "
+                raise ValueError(f"context.covariances: expected ({K}, {D}, {D}), "
                                  f"got {tuple(covs.shape)}")
         chosen = self._chosen(covs, K, generator)
         stats: dict = {"leaves": 0, "valid": 0, "kept": 0, "starts": 0,

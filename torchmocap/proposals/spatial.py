@@ -196,7 +196,7 @@ class SpatialPriorProposal(Proposal):
             (:func:`~torchmocap.ik.project_to_skeleton`).
         default_std: see ``position_std``.
         speed_gain: each joint's std grows with its speed over the last two estimates
-            (``context.extras["history"]``): ``σ_l' = sqrt(σ_l² + (speed_gain · |F_l(θ_{t−1}) −
+            (``context.history``): ``σ_l' = sqrt(σ_l² + (speed_gain · |F_l(θ_{t−1}) −
             F_l(θ_{t−2})|)²)`` — a hand moving 10 cm per frame gets a wide cloud, a shoulder
             moving 1 cm keeps ``σ_l``. 0 (default): the paper's fixed spread. The spread is the
             transition prior's too (the SIR weights assume the proposal's prior is the model's).
@@ -298,7 +298,7 @@ class SpatialPriorProposal(Proposal):
         """Per-joint std ``(L,)``: ``position_std``, widened by ``speed_gain`` times each
         joint's displacement between the last two estimates when the tracker passes them."""
         std = self.std
-        history = context.extras.get("history")
+        history = context.history
         if self.speed_gain == 0 or history is None or history.shape[0] < 2:
             return std
         with torch.no_grad():

@@ -368,6 +368,13 @@ class Skeleton(nn.Module):
         """Indices of the root's translational DoFs (empty when disabled)."""
         return list(self._trans_dofs)
 
+    def rotation_mask(self) -> torch.Tensor:
+        """``(D,)`` bool, True for the DoFs that are angles (every DoF but the root
+        translation), on the skeleton's device."""
+        mask = torch.ones(self.num_dofs, dtype=torch.bool, device=self.offsets.device)
+        mask[self.translation_dofs] = False
+        return mask
+
     def child_joints(self, name: str) -> list[str]:
         """Names of the direct children of joint ``name``."""
         i = self.joint_index(name)

@@ -1,0 +1,83 @@
+"""The steps of one ``torchmocap-track`` job that a single run and a batch of seeds share:
+the thread policy, the early check of the tracker settings, and :func:`finish` — a track's
+scores (:func:`torchmocap.evaluation.evaluate_track`), its files and ``metrics.json``."""
+
+from __future__ import annotations
+
+import sys
+import warnings
+from pathlib import Path
+from typing import Any
+
+from torchmocap.cli.runs import is_multirun, write_json_atomic
+
+__all__ = ["finish", "thread_policy", "validate_tracker"]
+
+
+def thread_policy(cfg):
+    """Set torch's thread count by the ``threads`` setting (:mod:`torchmocap.threads`: ``auto``
+    stays off cores that other processes or parallel jobs of the sweep use); returns the
+    governor that re-checks between frames."""
+    from torchmocap.threads import ThreadGovernor
+
+    launcher = None
+    if is_multirun():
+        from hydra.core.hydra_config import HydraConfig
+
+        launcher = HydraConfig.get().launcher
+    return ThreadGovernor.start(cfg.get("threads", "auto"), launcher)
+
+
+def validate_tracker(cfg) -> None:
+    """Build the tracker once against a stand-in subject (human31, four cameras, the paper's
+    five tracking IMUs): a bad setting fails in a fraction of a second, before the data is
+    loaded, fitted and synthesised."""
+    from torchmocap.assembly import Runtime, build_tracker
+    from torchmocap.body import CapsuleBody
+    from torchmocap.cameras import make_ring_rig
+    from torchmocap.ik import SensorManifold
+    from torchmocap.skeleton import human31
+
+    seed = cfg.get("seed")
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise ValueError(f"seed: expected an integer, got {seed!r}")
+    sk = human31()
+    stand_in = Runtime(skeleton=sk, body=CapsuleBody(sk).float(), rig=make_ring_rig(4).float(),
+                       manifold=SensorManifold(sk))
+    build_tracker(cfg.tracker, stand_in, seed=seed)
+
+
+def finish(cfg, out: Path, seq, runtime, tracker, track, fingerprint: str,
+           extra: dict | None = None) -> dict:
+    """Score a finished track, write its files and ``metrics.json`` (last); returns the metrics
+    (``extra`` joins them). The evaluation's warnings are printed as
+    ``torchmocap-track: warning: ...``."""
+    from torchmocap.cli.outputs import write_outputs
+    from torchmocap.evaluation import EvaluationWarning, evaluate_track
+
+    metrics: dict[str, Any] = {
+        "tracker": tracker.name,
+        "frames": int(track.theta.shape[0]),
+        "tracked_frames": int(track.theta.shape[0] - 1),
+        "seconds_per_frame": track.seconds_per_frame,
+        "num_particles": tracker.num_particles,
+        "layers": getattr(tracker.inference, "layers", None),
+        "scenario": seq.scenario,
+        "seed": int(cfg.seed),
+        "clip": seq.meta.get("clip", {}),
+        "fingerprint": fingerprint,
+    }
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", EvaluationWarning)
+        scores = evaluate_track(seq, runtime, tracker, track, energy_vs_truth=bool(
+            cfg.get("diagnostics", {}).get("energy_vs_truth", False)))
+    for w in caught:
+        if issubclass(w.category, EvaluationWarning):
+            print(f"torchmocap-track: warning: {w.message}", file=sys.stderr)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    metrics.update(extra or {})
+    metrics.update(scores.metrics)
+    write_outputs(out, cfg, seq, runtime, track.theta, scores.arrays)
+    write_json_atomic(metrics, out / "metrics.json")
+    return metrics

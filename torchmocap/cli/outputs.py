@@ -1,0 +1,172 @@
+"""The files of a finished ``torchmocap-track`` run and its printed summary: ``track.npz``,
+``tracked.bvh``, ``errors.png``, the overlay grids, the overlay video and the animated GLB, each
+written atomically; :func:`validate_outputs` checks their settings before a track starts."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+__all__ = ["print_summary", "validate_outputs", "write_outputs"]
+
+
+def write_outputs(out: Path, cfg, seq, runtime, theta, arrays: dict) -> None:
+    """``track.npz`` (``arrays``), ``tracked.bvh`` (the track ``theta (T, D)``) and the plots,
+    overlays, video and GLB the output settings of ``cfg`` ask for, into ``out``."""
+    import numpy as np
+    import torch
+
+    from torchmocap.io import MotionClip, write_bvh
+
+    sk = runtime.skeleton
+    np.savez_compressed(out / "track.npz", **arrays)
+    write_bvh(out / "tracked.bvh", MotionClip.from_skeleton(sk.double(), theta.double(),
+                                                            fps=seq.fps))
+    sk.float()
+    with torch.no_grad():
+        _write_plots(out, seq, runtime, theta, arrays, cfg)
+
+
+def validate_outputs(cfg) -> None:
+    """The output settings (``overlays``, ``overlay_scale``, ``video.*``, ``glb.*``), checked
+    before the track so that a typo does not fail a long run at its end."""
+    from torchmocap.viz.video import VIDEO_FORMATS
+
+    def number(key, value, none=False):
+        if none and value is None:
+            return
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or \
+                not (math.isfinite(value) and value > 0):
+            raise ValueError(f"{key}: expected a finite number > 0{' or null' if none else ''}, "
+                             f"got {value!r}")
+
+    n = cfg.get("overlays", 3)
+    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+        raise ValueError(f"overlays: expected an integer >= 0, got {n!r}")
+    number("overlay_scale", cfg.get("overlay_scale", 1.0))
+    video = cfg.get("video") or {}
+    if video.get("format", "mp4") not in VIDEO_FORMATS:
+        raise ValueError(f"video.format: expected one of {list(VIDEO_FORMATS)}, got "
+                         f"{video.get('format')!r}")
+    number("video.max_fps", video.get("max_fps"), none=True)
+    number("video.scale", video.get("scale", 1.0))
+    glb = cfg.get("glb") or {}
+    if glb.get("body", "skinned") not in ("skinned", "stick"):
+        raise ValueError(f"glb.body: expected 'skinned' or 'stick', got {glb.get('body')!r}")
+    if glb.get("up", "y") not in ("y", "z"):
+        raise ValueError(f"glb.up: expected 'y' or 'z', got {glb.get('up')!r}")
+
+
+def _write_plots(out, seq, runtime, theta, arrays, cfg):
+    """``errors.png``, the overlay grids, the video and the GLB (each file atomically)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from torchmocap.evaluation import validation_bones
+    from torchmocap.io.atomic import atomic_path
+
+    T = theta.shape[0]
+    if "orientation_error_deg" in arrays:
+        ori, mp = arrays["orientation_error_deg"], arrays["mpjpe_mm"]
+        t_axis = np.arange(1, T) / seq.fps
+        fig, ax = plt.subplots(2, 1, figsize=(7, 5), sharex=True)
+        for k, b in enumerate(validation_bones(seq)):
+            ax[0].plot(t_axis, ori[:, k], label=b, lw=1)
+        ax[0].plot(t_axis, ori.mean(1), "k", lw=2, label="mean")
+        ax[0].set_ylabel("orientation error (deg)")
+        ax[0].legend(fontsize=7, ncol=3)
+        ax[1].plot(t_axis, mp, "k")
+        ax[1].set_ylabel("MPJPE (mm)")
+        ax[1].set_xlabel("time (s)")
+        fig.tight_layout()
+        with atomic_path(out / "errors.png") as tmp:
+            fig.savefig(tmp, dpi=100, format="png")
+        plt.close(fig)
+    _write_overlays(out, seq, runtime, theta, cfg)
+    glb = cfg.get("glb") or {}
+    if glb.get("enabled", False):
+        _write_glb(out / "track.glb", seq, runtime, theta, glb)
+
+
+def _write_overlays(out, seq, runtime, theta, cfg) -> None:
+    """Overlay grids (``overlay_XXXX.png``: every view, the estimate and the truth, a legend) at
+    ``overlays`` evenly spaced frames, or of the last frame when there is no ground truth; with
+    ``video.enabled`` an animation of the grids over the whole track."""
+    import logging
+
+    import numpy as np
+
+    from torchmocap.viz.overlays import track_overlay_frames, write_overlay_grid
+    from torchmocap.viz.video import decimation, write_video
+
+    n = int(cfg.get("overlays", 3))
+    video = cfg.get("video") or {}
+    if runtime.rig is None or (seq.silhouettes is None and seq.images is None):
+        if video.get("enabled", False):
+            logging.getLogger(__name__).warning("video: the sequence has no camera views; "
+                                                "no video written")
+        return
+    T = int(theta.shape[0])
+    kw = dict(rig=runtime.rig, body=runtime.body, scale=float(cfg.get("overlay_scale", 1.0)))
+    if n > 0:
+        frames = ([T - 1] if seq.ground_truth is None else
+                  sorted({int(round(x)) for x in np.linspace(1, T - 1, n)}))
+        for t, grid in track_overlay_frames(seq, runtime.skeleton, theta, frames, **kw):
+            write_overlay_grid(out / f"overlay_{t:04d}.png", grid)
+    if video.get("enabled", False):
+        fps = float(seq.fps)
+        max_fps = video.get("max_fps")
+        step = decimation(fps, None if max_fps is None else float(max_fps))
+        kw["scale"] = float(video.get("scale", kw["scale"]))
+        grids = (g for _, g in track_overlay_frames(seq, runtime.skeleton, theta,
+                                                     range(0, T, step), **kw))
+        path = write_video(out / "overlays", grids, fps / step, format=str(video.get("format",
+                                                                                     "mp4")))
+        logging.getLogger(__name__).info("video: wrote %s (%d frames at %g fps)", path,
+                                         len(range(0, T, step)), fps / step)
+
+
+def _write_glb(path, seq, runtime, theta, glb) -> None:
+    """``track.glb``: the bundled skinned body (``glb.body: skinned``) or a stick figure
+    (``stick``) following the estimate, keyframes at the sequence's frame times."""
+    from torchmocap.export import write_glb
+
+    mesh = None
+    if glb.get("body", "skinned") == "skinned":
+        from torchmocap.body import SkinnedBody
+
+        mesh = SkinnedBody()
+    write_glb(path, runtime.skeleton, theta, float(seq.fps), body_mesh=mesh,
+              up=str(glb.get("up", "y")))
+
+
+def print_summary(m: dict) -> None:
+    """The run's summary table on stdout (the metrics as JSON when there is no truth)."""
+    if "orientation_error_deg" not in m:
+        print(json.dumps({k: v for k, v in m.items() if k != "clip"}, indent=2))
+        return
+    o = m["orientation_error_deg"]
+    rows = [("tracker", m["tracker"]), ("scenario", m.get("scenario")), ("frames", m["frames"]),
+            ("particles x layers", f"{m['num_particles']} x {m['layers']}"),
+            ("seconds / frame", f"{m['seconds_per_frame']:.3f}"),
+            ("orientation error (deg)", f"{o['mean']:.2f} +- {o['std']:.2f}"),
+            ("MPJPE (mm)", f"{m['mpjpe_mm']['mean']:.1f} +- {m['mpjpe_mm']['std']:.1f}")]
+    r = m.get("mpjpe_root_relative_mm")
+    if r:
+        rows.append(("MPJPE, root-aligned (mm)", f"{r['mean']:.1f} +- {r['std']:.1f}"))
+    f = m.get("filtered")
+    if f and m.get("smoother"):  # the errors above are the smoothed track's
+        rows.append((f"filtered (before {m['smoother'].get('name', 'smoothing')})",
+                     f"{f['orientation_error_deg']:.2f} deg, {f['mpjpe_mm']:.1f} mm"))
+    held = m.get("hold_first_pose")
+    if held:
+        rows.append(("holding the first pose", f"{held['orientation_error_deg']:.2f} deg, "
+                                               f"{held['mpjpe_mm']:.1f} mm"))
+    rows += [(f"  {b}", f"{v:.2f}") for b, v in o["per_bone"].items()]
+    w = max(len(r[0]) for r in rows)
+    for k, v in rows:
+        print(f"{k:<{w}}  {v}")

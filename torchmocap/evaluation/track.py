@@ -1,0 +1,129 @@
+"""One call that scores a finished track: :func:`evaluate_track` (what ``torchmocap-track``
+writes into ``metrics.json`` and ``track.npz`` besides the run's settings)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from torchmocap.evaluation.diagnostics import (
+    hypothesis_arrays,
+    smoother_report,
+    summarize_diagnostics,
+)
+from torchmocap.evaluation.truth import (
+    energy_below_truth,
+    error_means,
+    held_dofs,
+    hypothesis_errors,
+    marker_error,
+    track_errors,
+)
+from torchmocap.evaluation.views import reprojection_error, silhouette_agreement
+
+__all__ = ["TrackEvaluation", "evaluate_track"]
+
+#: sequence meta entries reported beside the scores (a recording's hull top and subject scale)
+META_KEYS = ("hull_top_m", "skeleton_scale", "source")
+
+
+@dataclass
+class TrackEvaluation:
+    """The scores of a track.
+
+    Attributes:
+        metrics: JSON-ready scores (see :func:`evaluate_track`).
+        arrays: per-frame arrays for ``track.npz``: ``theta (T, D)``, ``dof_names``, with
+            ground truth ``theta_gt``, ``orientation_error_deg (T-1, B)``, ``mpjpe_mm (T-1,)``;
+            with a smoother ``theta_filtered``; with hypotheses ``hypotheses (T, K, D)``,
+            ``hypothesis_weights``, ``hypothesis_energy``.
+    """
+
+    metrics: dict[str, Any] = field(default_factory=dict)
+    arrays: dict[str, Any] = field(default_factory=dict)
+
+
+def evaluate_track(seq, runtime, tracker, track, energy_vs_truth: bool = False
+                   ) -> TrackEvaluation:
+    """Score ``track`` (a :class:`~torchmocap.filters.Track` of ``seq`` by ``tracker``).
+
+    Args:
+        seq: the tracked :class:`~torchmocap.data.Sequence`.
+        runtime: the :class:`~torchmocap.assembly.Runtime` the tracker was built with (its
+            skeleton, body and rig score the track).
+        tracker: the :class:`~torchmocap.filters.Tracker` (its likelihood for
+            ``energy_vs_truth``).
+        track: the finished track.
+        energy_vs_truth: also report the fraction of frames whose estimate has a lower energy
+            than the truth (one energy evaluation per frame).
+
+    Returns:
+        :class:`TrackEvaluation`. ``metrics``: the diagnostics summary
+        (:func:`~torchmocap.evaluation.summarize_diagnostics`); with a smoother its report
+        (``smoother``); with ground truth the errors of :func:`track_errors` (validation bones,
+        orientation error, MPJPE, root-aligned MPJPE), ``held_dofs``, ``hold_first_pose`` (the
+        errors of a do-nothing tracker that keeps the first pose), with a smoother
+        ``filtered`` (the tracker's own errors) and each chain stage's errors, with skin
+        markers ``marker_error_mm``, with hypotheses ``hypotheses``, and on request
+        ``estimate_energy_below_truth``; without ground truth ``silhouette_iou``; with 2D
+        joints ``reprojection_px``; the sequence's ``hull_top_m``, ``skeleton_scale`` and
+        ``source`` when it has them. Warnings: :class:`~torchmocap.evaluation.EvaluationWarning`.
+    """
+    sk = runtime.skeleton
+    metrics: dict[str, Any] = dict(summarize_diagnostics(track.infos))
+    arrays: dict[str, Any] = {"theta": track.theta.numpy(), "dof_names": _dof_names(sk),
+                              **hypothesis_arrays(track.infos, sk.num_dofs)}
+    smoothing = track.smoother
+    if track.filtered is not None:  # theta is smoothed; the filter's own estimates beside it
+        arrays["theta_filtered"] = track.filtered.numpy()
+        if smoothing:
+            metrics["smoother"] = smoother_report(smoothing)
+    if seq.ground_truth is not None:
+        errors = track_errors(seq, sk, track.theta)
+        metrics.update(errors.pop("summary"))
+        arrays.update({k: v.numpy() for k, v in errors.items()})
+        held = held_dofs(seq, sk, track.theta)
+        if held:
+            metrics["held_dofs"] = held
+        # the do-nothing tracker: the first frame's pose (every tracker's start) held throughout
+        metrics["hold_first_pose"] = error_means(
+            track_errors(seq, sk, track.theta[:1].expand_as(track.theta))["summary"])
+        if track.filtered is not None:
+            metrics["filtered"] = error_means(track_errors(seq, sk, track.filtered)["summary"])
+            # a chain of smoothers: the errors after each stage (an ablation in one run); the
+            # last stage's are the top-level ones
+            stages = (smoothing or {}).get("stages") or []
+            for k, rep in enumerate(stages):
+                if not (isinstance(rep, dict) and isinstance(rep.get("theta"), torch.Tensor)):
+                    continue
+                e = (metrics if k == len(stages) - 1
+                     else track_errors(seq, sk, rep["theta"].cpu())["summary"])
+                metrics["smoother"]["stages"][k]["errors"] = error_means(e)
+        if seq.ground_truth.markers is not None:
+            metrics["marker_error_mm"] = marker_error(seq, runtime.body, sk, track.theta)
+            if track.filtered is not None:
+                metrics["filtered"]["marker_error_mm"] = marker_error(
+                    seq, runtime.body, sk, track.filtered)["mean"]
+        hyp = hypothesis_errors(seq, sk, track.infos)
+        if hyp:
+            metrics["hypotheses"] = hyp
+        if energy_vs_truth:
+            metrics["estimate_energy_below_truth"] = energy_below_truth(tracker, seq,
+                                                                        track.theta)
+    else:
+        metrics["silhouette_iou"] = silhouette_agreement(seq, runtime.body, runtime.rig,
+                                                         track.theta)
+    if seq.joints2d is not None and runtime.rig is not None:
+        metrics["reprojection_px"] = reprojection_error(seq, sk, runtime.rig, track.theta)
+    for k in META_KEYS:
+        if k in seq.meta:
+            metrics[k] = seq.meta[k]
+    return TrackEvaluation(metrics=metrics, arrays=arrays)
+
+
+def _dof_names(skeleton):
+    import numpy as np
+
+    return np.array(skeleton.dof_names)
