@@ -41,6 +41,7 @@ from torchmocap.filters.annealed import anneal
 from torchmocap.filters.annealing import get_schedule
 from torchmocap.filters.local import check_method, minimise_local
 from torchmocap.filters.resampling import get_resampler
+from torchmocap.filters.sir import sir_step
 from torchmocap.filters.temporal_prior import TemporalPrior
 from torchmocap.geometry import wrap_angle
 from torchmocap.proposals.base import ProposalContext
@@ -513,8 +514,6 @@ class SIRInference(Inference):
 
     def forward(self, energy, proposal, estimator, context, num: int,
                 generator: torch.Generator | None = None) -> InferenceResult:
-        from torchmocap.filters.resampling import effective_sample_size
-
         t0 = time.perf_counter()
         past = context.previous_frame
         prev = None if past is None else past.particles
@@ -525,40 +524,41 @@ class SIRInference(Inference):
             lw = None
         lw = (torch.full((num,), -math.log(num), dtype=torch.float64, device=prev.device)
               if lw is None else lw.to(torch.float64))
-        lw = lw - torch.logsumexp(lw, 0)
-        resampled = bool(float(effective_sample_size(lw)) < self.ess_threshold * num) \
-            or self.ess_threshold >= 1.0
-        if resampled:
-            idx = self.selection(lw, generator)
-            prev = prev[idx]
-            lw = torch.full_like(lw, -math.log(num))
-        ctx = dataclasses.replace(context, previous=prev.to(context.previous.dtype),
-                                  log_weights=None)
-        out = proposal.sample(ctx, num, generator)
-        x = out.particles
-        with torch.no_grad():
-            v = energy(x).to(torch.float64)
-        log_r = torch.zeros_like(lw)
-        corrected = out.log_q is not None and out.log_prior is not None
-        if corrected:
-            log_r = (out.log_prior - out.log_q).to(torch.float64)
-        inc = lw - v / self.temperature + log_r
-        valid = getattr(out, "valid", None)
-        log_ev = torch.logsumexp(inc, 0)
-        if not bool(torch.isfinite(log_ev)):
-            raise ValueError("energy: every particle has zero weight (infinite energies)")
-        new_lw = inc - log_ev
-        w = new_lw.exp()
-        ess = float(effective_sample_size(new_lw))
-        est = estimator(x, w.to(x.dtype), context)
-        info = {"ess": [ess], "ess_fraction": ess / num, "resampled": resampled,
-                "log_evidence": float(log_ev), "correction": corrected,
+        drawn = []
+
+        def propose(x, g):  # one particle from each (resampled) particle; r_t when known
+            ctx = dataclasses.replace(context, previous=x.to(context.previous.dtype),
+                                      log_weights=None)
+            out = proposal.sample(ctx, num, g)
+            drawn.append(out)
+            if out.log_q is None or out.log_prior is None:
+                return out.particles
+            return out.particles, (out.log_prior - out.log_q).to(torch.float64)
+
+        def log_likelihood(x):
+            with torch.no_grad():
+                return -energy(x).to(torch.float64) / self.temperature
+
+        try:
+            st = sir_step(prev, lw, propose, log_likelihood, generator=generator,
+                          resampler=self.selection, ess_threshold=self.ess_threshold)
+        except ValueError as e:
+            if "zero likelihood" in str(e):
+                raise ValueError("energy: every particle has zero weight (infinite energies)") \
+                    from None
+            raise
+        out, x = drawn[0], st.particles
+        ess = float(st.ess)
+        est = estimator(x, st.log_weights.exp().to(x.dtype), context)
+        info = {"ess": [ess], "ess_fraction": ess / num, "resampled": st.resampled,
+                "log_evidence": float(st.log_evidence),
+                "correction": out.log_q is not None and out.log_prior is not None,
                 "proposal": _summarise([out.stats]),
                 "seconds_inference": time.perf_counter() - t0}
-        if valid is not None:
-            info["proposal"]["valid_fraction"] = float(valid.float().mean())
+        if getattr(out, "valid", None) is not None:
+            info["proposal"]["valid_fraction"] = float(out.valid.float().mean())
         return InferenceResult(estimate=est, particles=x.detach(),
-                               log_weights=new_lw.to(x.dtype), info=info)
+                               log_weights=st.log_weights.to(x.dtype), info=info)
 
     def extra_repr(self) -> str:
         return (f"selection={self.selection!r}, ess_threshold={self.ess_threshold}, "

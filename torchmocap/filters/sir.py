@@ -51,7 +51,7 @@ class SIRStep:
 
     Attributes:
         particles: propagated particles ``(P, D)``.
-        log_weights: normalised log weights ``(P,)``.
+        log_weights: normalised log weights ``(P,)``, float64.
         ancestors: ``(P,)`` index of each particle's parent in the input set.
         resampled: whether the input set was resampled first.
         ess: effective sample size of the new weights (0-dim, float64).
@@ -137,7 +137,7 @@ def sir_step(
     new_lw = inc - log_ev
     return SIRStep(
         particles=new,
-        log_weights=new_lw.to(particles.dtype),
+        log_weights=new_lw,
         ancestors=ancestors,
         resampled=resampled,
         ess=effective_sample_size(new_lw),
@@ -194,7 +194,7 @@ def sir_filter(
             ess_threshold=ess_threshold,
         )
         x, lw = st.particles, st.log_weights
-        w = torch.exp(lw.to(torch.float64))
+        w = torch.exp(lw)
         means.append((w[:, None] * x.to(torch.float64)).sum(0))
         ess.append(st.ess)
         res.append(st.resampled)
@@ -205,5 +205,5 @@ def sir_filter(
         resampled=torch.tensor(res, device=particles.device),
         log_evidence=total,
         particles=x,
-        log_weights=lw,
+        log_weights=lw.to(particles.dtype),
     )
