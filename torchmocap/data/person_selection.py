@@ -63,8 +63,8 @@ def person_agreement(joints: Tensor, rig, min_keypoints: int = 4) -> Tensor:
         ``(T, C)`` float64 errors in pixels (NaN where not measurable).
     """
     j = joints.double()
-    X = triangulate_dlt(j[..., :2], j[..., 2], rig.double())  # (T, K, 3)
-    pix = rig.double().project(X)[0]  # (T, C, K, 2)
+    X = triangulate_dlt(j[..., :2], j[..., 2], rig)  # (T, K, 3), float64 like the pixels
+    pix = rig.project(X)[0]  # (T, C, K, 2)
     valid = (j[..., 2] > 0) & torch.isfinite(pix).all(-1)
     err = _median_distance(pix, j[..., :2], valid, min_keypoints)
     return torch.where(torch.isinf(err), torch.full_like(err, float("nan")), err)
@@ -116,7 +116,6 @@ def select_person(people: Sequence[Sequence[Tensor]], rig, min_confidence: float
         ValueError: ``people`` not ``T`` lists of ``C`` tensors of one ``K``.
     """
     C = rig.num_cameras
-    rig = rig.double()
     if max_error is None:
         max_error = 0.03 * float(rig.image_size.double().norm(dim=-1).max())
     shapes = {x.shape[1:] for frame in people for x in frame if x.shape[0] > 0}

@@ -31,6 +31,7 @@ import math
 import os
 import re
 import subprocess
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -213,10 +214,9 @@ class VideoFrames:
 
         Raises:
             ValueError: a range, stride or scale out of bounds (:func:`check_frame_range`).
-            FrameSourceError: the video ends early or a frame does not decode (file named).
+            FrameSourceError: the video ends early or its frames do not decode (file named,
+                with ffmpeg's last error line).
         """
-        import imageio_ffmpeg
-
         idx = check_frame_range(self.num_frames, start, stop, stride, scale, str(self.path))
         s, e, k = idx.start, idx.stop, idx.step
         # select by decoded frame number, then renumber the timestamps at the output rate so
@@ -224,36 +224,36 @@ class VideoFrames:
         # (works with ffmpeg versions before and after -vsync became -fps_mode)
         rate = repr(self.fps)
         vf = f"select='gte(n\\,{s})*lt(n\\,{e})*not(mod(n-{s}\\,{k}))',setpts=N/({rate}*TB)"
-        gen = imageio_ffmpeg.read_frames(
-            str(self.path), pix_fmt="rgb24",
-            output_params=["-vf", vf, "-r", rate, "-frames:v", str(len(idx))])
+        cmd = [self._exe, "-hide_banner", "-nostdin", "-loglevel", "error", "-i",
+               str(self.path), "-map", "0:v:0", "-vf", vf, "-r", rate, "-frames:v",
+               str(len(idx)), "-f", "rawvideo", "-pix_fmt", "rgb24", "-"]
         w, h = self.size
+        size = w * h * 3
         count = 0
-        try:
-            meta = next(gen)
-            if tuple(meta["size"]) != self.size:
-                raise FrameSourceError(f"{self.path}: frames decode to {tuple(meta['size'])}, "
-                                       f"not {self.size}")
-            for buf in gen:
-                if len(buf) != w * h * 3:
-                    raise FrameSourceError(f"{self.path}: frame {idx[count]} is incomplete "
-                                           f"({len(buf)} bytes, expected {w * h * 3})")
-                frame = np.frombuffer(buf, np.uint8).reshape(h, w, 3)
-                if scale != 1.0:
-                    frame = np.asarray(resize_image(Image.fromarray(frame), scale))
-                yield frame
-                count += 1
-                if count == len(idx):
-                    break
-        except (OSError, RuntimeError) as e:
-            raise FrameSourceError(f"{self.path}: decoding failed after {count} frames "
-                                   f"({_last_line(e)})") from None
-        finally:
-            gen.close()
-        if count != len(idx):
-            raise FrameSourceError(f"{self.path}: decoded {count} of the {len(idx)} frames "
-                                   f"{s}..{e - 1} (stride {k}); the file has fewer frames than "
-                                   f"its {self.num_frames} packets")
+        with tempfile.TemporaryFile() as log, subprocess.Popen(
+                cmd, stdout=subprocess.PIPE, stderr=log) as proc:
+            try:
+                while count < len(idx):
+                    buf = proc.stdout.read(size)
+                    if len(buf) < size:
+                        break
+                    frame = np.frombuffer(buf, np.uint8).reshape(h, w, 3)
+                    if scale != 1.0:
+                        frame = np.asarray(resize_image(Image.fromarray(frame), scale))
+                    yield frame
+                    count += 1
+            finally:
+                if proc.poll() is None:
+                    proc.kill()
+                proc.stdout.close()
+                proc.wait()
+            if count != len(idx):
+                log.seek(0)
+                why = log.read().decode(errors="replace").strip().splitlines()
+                raise FrameSourceError(
+                    f"{self.path}: decoded {count} of the {len(idx)} frames {s}..{e - 1} "
+                    f"(stride {k}) of a video of {self.num_frames} packets"
+                    + (f" ({why[-1]})" if why else ""))
 
     def __repr__(self) -> str:
         return (f"VideoFrames({str(self.path)!r}, size={self.size}, fps={self.fps:g}, "
