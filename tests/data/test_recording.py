@@ -166,6 +166,14 @@ class TestPose2Sim:
         assert bool(((c == 0) | (c >= 0.6)).all()) and bool((c == 0).any())
 
 
+    def test_feature_save_round_trip(self, p2s, tmp_path):
+        seq = _load(p2s, cameras=["cam02"], stop=2, scale=0.25)
+        back = type(seq).load(seq.save(tmp_path / "seq"))
+        assert torch.equal(back.images, seq.images) and torch.equal(back.joints2d, seq.joints2d)
+        assert back.joint_names == seq.joint_names and back.meta == seq.meta
+        torch.testing.assert_close(back.rig.K, seq.rig.K.double())
+
+
 class TestBodytrack:
     def test_feature(self, shared_data):
         root = shared_data / "multiview" / "bodytrack_sequenceB_1"

@@ -341,6 +341,11 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
             lengths, missing per-frame files (named).
         KeypointFormatError: keypoint files of another format, empty or unparsable.
         ValueError: a setting out of bounds (named ``data.<setting>``).
+
+    Example:
+        >>> seq = load_recording("pose2sim_balancing", stop=4, cameras=["cam03"])  # doctest: +SKIP
+        >>> seq.images.shape, seq.joints2d.shape                                   # doctest: +SKIP
+        (torch.Size([4, 1, 960, 544, 3]), torch.Size([4, 1, 25, 3]))
     """
     from torchmocap.data.sequence import Sequence as Seq
 
