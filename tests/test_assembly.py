@@ -65,7 +65,7 @@ def test_every_tracker_preset_builds(runtime, option):
 
 
 def test_every_data_option_composes_and_the_default_builds(tmp_path):
-    assert _options("data") == ["bodytrack", "default"]
+    assert _options("data") == ["bodytrack", "default", "recording"]
     assert _options("data/clip") == ["bundled"]
     from torchmocap.cli.runs import load_sequence
 

@@ -22,6 +22,7 @@ from torchmocap.cameras.rig import CameraError, CameraRig, _check_image_size
 
 __all__ = [
     "UNITS",
+    "load_rig_file",
     "read_bouguet_cal",
     "read_bouguet_rig",
     "read_rig",
@@ -228,7 +229,7 @@ def rig_from_dict(data: dict[str, Any], source: str = "<dict>", unit: str | floa
     scale = _unit_scale(unit if unit is not None else data.get("unit", "m"))
     Ks, Rs, ts, ds, sizes, names = [], [], [], [], [], []
     for i, cam in enumerate(cams):
-        where = f"{source}: camera {i}"
+        where = f"{source}: camera {i}" if "cameras" in data else source
         if not isinstance(cam, dict):
             raise CameraError(f"{where}: expected a mapping")
         Ks.append(_matrix(_first(cam, ["camera_matrix", "K"], where), (3, 3), where, "K"))
@@ -287,24 +288,35 @@ def read_rig(path: str | os.PathLike, unit: str | float | None = None) -> Camera
     OpenCV's ``%YAML:1.0`` header and ``!!opencv-matrix`` nodes are understood.
     """
     path = Path(path)
+    return rig_from_dict(load_rig_file(path), str(path), unit)
+
+
+def load_rig_file(path: str | os.PathLike) -> Any:
+    """The parsed content of a ``.json`` file or an (OpenCV FileStorage) YAML file.
+
+    OpenCV's ``%YAML:1.0`` header and ``!!opencv-matrix`` nodes (mappings with ``rows``,
+    ``cols``, ``dt``, ``data``) are understood.
+
+    Raises:
+        CameraError: naming the file (and line) when it cannot be read or parsed.
+    """
+    path = Path(path)
     try:
         text = path.read_text()
     except OSError as e:
         raise CameraError(f"{path}: cannot read ({e})") from e
     try:
         if path.suffix.lower() == ".json":
-            data = json.loads(text)
-        else:
-            if text.startswith("%YAML:"):
-                text = text.split("\n", 1)[1] if "\n" in text else ""
-            data = yaml.load(text, Loader=_OpenCVLoader)  # noqa: S506 - safe loader subclass
+            return json.loads(text)
+        if text.startswith("%YAML:"):
+            text = text.split("\n", 1)[1] if "\n" in text else ""
+        return yaml.load(text, Loader=_OpenCVLoader)  # noqa: S506 - safe loader subclass
     except (json.JSONDecodeError, yaml.YAMLError) as e:
         line = getattr(e, "lineno", None)
         mark = getattr(e, "problem_mark", None)
         if mark is not None:
             line = mark.line + 1
         raise CameraError(f"{path}:{line}: cannot parse ({e})") from e
-    return rig_from_dict(data, str(path), unit)
 
 
 def write_rig(rig: CameraRig, path: str | os.PathLike) -> Path:

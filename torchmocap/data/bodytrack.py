@@ -33,24 +33,31 @@ def load_bodytrack(root: str | Path, scale: float = 1.0):
 
     Raises:
         FileNotFoundError: a missing folder, calibration, image or mask (named).
+        CameraError: a gap in the calibration files' numbers (e.g. no ``Camera2.cal``).
         ValueError: unreadable images or masks of another size than the camera's.
     """
     import numpy as np
     from PIL import Image, UnidentifiedImageError
 
-    from torchmocap.cameras import read_bouguet_rig
+    from torchmocap.cameras import bouguet_calibration_files, read_bouguet_rig
 
     root = Path(root)
     if not root.is_dir():
         raise FileNotFoundError(f"data.path: no such folder: {root}")
-    cals = sorted((root / "CALIB").glob("Camera*.cal"))
-    if not cals:
+    if not any((root / "CALIB").glob("*.cal")):
         raise FileNotFoundError(f"data.path: no CALIB/Camera*.cal under {root}")
     if not (isinstance(scale, (int, float)) and 0 < scale <= 4):
         raise ValueError(f"data.scale: expected an image scale in (0, 4], got {scale!r}")
-    rig = read_bouguet_rig(cals, unit="mm")
+    # paired by the number in the name: Camera<i>.cal <-> CAM<i>/FG<i> (a gap is an error)
+    cals = bouguet_calibration_files(root / "CALIB")
+    rig = read_bouguet_rig([p for _, p in cals], unit="mm")
+    have = {i for i, _ in cals}
+    for d in sorted(root.glob("CAM*")):
+        if d.is_dir() and d.name[3:].isdigit() and int(d.name[3:]) not in have:
+            raise FileNotFoundError(f"data.path: {d.name} has no calibration "
+                                    f"(CALIB/Camera{int(d.name[3:])}.cal missing in {root})")
     imgs, masks = [], []
-    for i in range(1, len(cals) + 1):
+    for c, (i, _) in enumerate(cals):
         img, fg = _frame_file(root / f"CAM{i}"), _frame_file(root / f"FG{i}")
         if img is None or fg is None:
             raise FileNotFoundError(f"data.path: camera {i} image or mask (CAM{i}/FG{i}/"
@@ -60,7 +67,7 @@ def load_bodytrack(root: str | Path, scale: float = 1.0):
             m = Image.open(fg).convert("L")
         except (UnidentifiedImageError, OSError) as e:
             raise ValueError(f"data.path: cannot read camera {i}'s image or mask: {e}") from None
-        want = tuple(int(v) for v in rig.image_size[i - 1].tolist())
+        want = tuple(int(v) for v in rig.image_size[c].tolist())
         if a.size != want or m.size != want:
             raise ValueError(f"data.path: camera {i}: image {a.size} / mask {m.size} differ from "
                              f"the calibrated image size {want}")

@@ -1,0 +1,414 @@
+"""A real multi-view recording as a :class:`~torchmocap.data.Sequence`: :func:`load_recording`.
+
+The folder layout is that of :mod:`torchmocap.data.recording_files` (calibration, a video or
+image folder per camera, optional OpenPose keypoints, masks and background plates); see
+``docs/recordings.md``. What the loader checks:
+
+* every chosen camera has a calibration entry (matched by the number in its name, refused when
+  missing or ambiguous);
+* the calibrated image size is the decoded one — except a codec's macroblock crop (fewer than
+  16 pixels missing at the right or bottom edge, e.g. a 1088-row H.264 stream cropped to 1080):
+  accepted with a warning, the camera keeps the decoded size (its intrinsics are unchanged);
+* the videos have one frame rate and (unless ``stop`` stays within the shortest) one length;
+  views whose sizes differ by such a crop share one image tensor, the smaller ones padded
+  with black at the right/bottom (``meta["image_sizes"]`` has each view's own size);
+* keypoint files exist for every loaded frame and are of the declared format.
+
+Memory: the images are ``T × C × H × W × 3`` bytes at the working scale — 100 frames of 4
+views of 1088x1920 at ``scale=0.5`` are 100 · 4 · 544 · 960 · 3 B ≈ 0.63 GB (2.5 GB at full
+scale); frames are decoded and scaled one at a time, so the full-resolution frames are never
+all in memory.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import warnings
+from collections.abc import Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from torchmocap.cameras import CameraError, CameraRig, camera_key, read_calibration
+from torchmocap.data.person_selection import person_agreement, select_person
+from torchmocap.data.recording_files import (
+    RecordingCamera,
+    RecordingLayoutError,
+    discover_recording,
+)
+from torchmocap.io.frames import (
+    IMAGE_SUFFIXES,
+    FrameSourceError,
+    VideoFrames,
+    check_frame_range,
+    numbered_files,
+    open_frames,
+    resize_image,
+    scaled_size,
+)
+from torchmocap.io.openpose import check_keypoint_format, keypoint_format, read_openpose_json
+
+__all__ = ["CROP_TOLERANCE", "KEYPOINT_DEFAULTS", "load_recording"]
+
+log = logging.getLogger(__name__)
+
+#: pixels a decoded frame may lack at the right / bottom edge (a codec's macroblock crop)
+CROP_TOLERANCE = 16
+#: the ``keypoints`` settings and their defaults
+KEYPOINT_DEFAULTS = {"source": "auto", "format": "auto", "min_confidence": 0.1}
+_SOURCES = ("auto", "associated", "raw", "none")
+_MASKS = ("auto", "files", "none")
+#: frame rate of image folders without ``fps``
+DEFAULT_FPS = 25.0
+
+
+class _LazySizes(Mapping):
+    """Decoded ``(width, height)`` by camera name, opening a camera's frames only when asked
+    (a calibration that stores no sizes asks for every camera it has)."""
+
+    def __init__(self, cameras: Sequence[RecordingCamera], opened: dict[str, Any]) -> None:
+        self._cams = {c.name: c for c in cameras}
+        self._opened = opened
+
+    def __getitem__(self, name: str) -> tuple[int, int]:
+        if name not in self._opened:
+            self._opened[name] = open_frames(self._cams[name].frames)
+        return self._opened[name].size
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._cams)
+
+    def __len__(self) -> int:
+        return len(self._cams)
+
+
+def _choose_cameras(cams: list[RecordingCamera], cameras) -> list[RecordingCamera]:
+    if cameras is None:
+        return cams
+    if isinstance(cameras, (str, int)):
+        cameras = [cameras]
+    names = [c.name for c in cams]
+    out = []
+    for sel in cameras:
+        if isinstance(sel, bool) or not isinstance(sel, (str, int)):
+            raise ValueError(f"data.cameras: expected camera names or indices, got {sel!r}")
+        if isinstance(sel, int):
+            if not 0 <= sel < len(cams):
+                raise ValueError(f"data.cameras: index {sel} out of range; the recording has "
+                                 f"{len(cams)} cameras {names}")
+            cam = cams[sel]
+        else:
+            hits = [c for c in cams if c.name == sel] or \
+                [c for c in cams if c.key == camera_key(sel)]
+            if len(hits) != 1:
+                raise ValueError(f"data.cameras: unknown camera {sel!r}; the recording has "
+                                 f"{names}")
+            cam = hits[0]
+        if cam in out:
+            raise ValueError(f"data.cameras: camera {cam.name!r} chosen twice")
+        out.append(cam)
+    if not out:
+        raise ValueError("data.cameras: expected at least one camera")
+    return out
+
+
+def _match_calibration(rig: CameraRig, cams: list[RecordingCamera], path: Path) -> list[int]:
+    idx = []
+    for cam in cams:
+        hits = [i for i, n in enumerate(rig.names) if camera_key(n) == cam.key]
+        if not hits:
+            raise CameraError(f"{path}: no calibration for camera {cam.name!r} ({cam.frames}); "
+                              f"the calibration has {rig.names}")
+        if len(hits) > 1:
+            raise CameraError(f"{path}: calibration entries {[rig.names[i] for i in hits]} all "
+                              f"match camera {cam.name!r}; rename them")
+        idx.append(hits[0])
+    return idx
+
+
+def _check_sizes(rig: CameraRig, sources: list, cams: list[RecordingCamera], calib: Path
+                 ) -> CameraRig:
+    """The rig with each camera's decoded size (crop accepted with a warning)."""
+    sizes = []
+    for c, (src, cam) in enumerate(zip(sources, cams)):
+        W, H = (int(v) for v in rig.image_size[c].tolist())
+        w, h = src.size
+        if (w, h) != (W, H):
+            if not (0 <= W - w < CROP_TOLERANCE and 0 <= H - h < CROP_TOLERANCE):
+                raise CameraError(f"{cam.frames}: frames are {w}x{h} but the calibration "
+                                  f"({calib}, {rig.names[c]}) says {W}x{H}; the calibration "
+                                  "is of other images")
+            warnings.warn(f"{cam.frames}: frames are {w}x{h}, the calibration ({rig.names[c]}) "
+                          f"says {W}x{H}: a codec's crop of {W - w} columns / {H - h} rows at "
+                          f"the right / bottom edge; using {w}x{h}", stacklevel=3)
+        sizes.append((w, h))
+    return CameraRig(rig.K, rig.R, rig.t, sizes, rig.dist, [c.name for c in cams])
+
+
+def _check_streams(sources: list, cams: list[RecordingCamera], fps, stop) -> tuple[float, int,
+                                                                                   str]:
+    """Common frame rate, usable frame count, and where the rate came from."""
+    videos = [(s, c) for s, c in zip(sources, cams) if isinstance(s, VideoFrames)]
+    rates = {round(s.fps, 3) for s, _ in videos}
+    if len(rates) > 1:
+        raise FrameSourceError("videos of different frame rates: " + ", ".join(
+            f"{c.frames} {s.fps:g} fps" for s, c in videos))
+    if fps is not None and (isinstance(fps, bool) or not isinstance(fps, (int, float)) or
+                            not (math.isfinite(fps) and fps > 0)):
+        raise ValueError(f"data.fps: expected a frame rate > 0 or null, got {fps!r}")
+    if videos:
+        rate, origin = videos[0][0].fps, "video"
+        if fps is not None and abs(fps - rate) > 1e-3 * rate:
+            raise ValueError(f"data.fps: {fps} differs from the videos' {rate:g} fps (data.fps "
+                             "is for image folders)")
+    else:
+        rate, origin = (float(fps), "data.fps") if fps is not None else (DEFAULT_FPS, "default")
+    counts = [s.num_frames for s in sources]
+    if len(set(counts)) > 1 and (stop is None or (isinstance(stop, int) and stop > min(counts))):
+        raise FrameSourceError(
+            "cameras of different lengths: " + ", ".join(
+                f"{c.frames} {n} frames" for c, n in zip(cams, counts)) +
+            f"; set data.stop <= {min(counts)} to use the frames all of them have")
+    return rate, min(counts), origin
+
+
+def _read_masks(cam: RecordingCamera, frames: range, size: tuple[int, int], scale: float
+                ) -> Iterator[np.ndarray]:
+    files = numbered_files(cam.masks, IMAGE_SUFFIXES)
+    from PIL import Image, UnidentifiedImageError
+
+    for t in frames:
+        if t not in files:
+            raise FrameSourceError(f"{cam.masks}: no mask file for frame {t}")
+        try:
+            with Image.open(files[t]) as im:
+                m = im.convert("L")
+        except (UnidentifiedImageError, OSError) as e:
+            raise FrameSourceError(f"{files[t]}: cannot read mask ({e})") from None
+        if m.size != size:
+            raise FrameSourceError(f"{files[t]}: mask is {m.size[0]}x{m.size[1]}, the camera's "
+                                   f"frames are {size[0]}x{size[1]}")
+        yield np.asarray(resize_image(m, scale, Image.NEAREST)) > 127
+
+
+def _keypoint_settings(keypoints) -> dict[str, Any]:
+    given = {} if keypoints is None else dict(keypoints)
+    unknown = sorted(set(given) - set(KEYPOINT_DEFAULTS))
+    if unknown:
+        raise ValueError(f"data.keypoints: unknown setting(s) {unknown}; expected "
+                         f"{sorted(KEYPOINT_DEFAULTS)}")
+    s = {**KEYPOINT_DEFAULTS, **given}
+    if s["source"] not in _SOURCES:
+        raise ValueError(f"data.keypoints.source: expected one of {list(_SOURCES)}, got "
+                         f"{s['source']!r}")
+    if s["format"] != "auto":
+        keypoint_format(s["format"])
+    mc = s["min_confidence"]
+    if isinstance(mc, bool) or not isinstance(mc, (int, float)) or not 0 <= mc <= 1:
+        raise ValueError(f"data.keypoints.min_confidence: expected a number in [0, 1], got "
+                         f"{mc!r}")
+    return s
+
+
+def _keypoint_kind(cams: list[RecordingCamera], source: str, root: Path) -> str | None:
+    if source == "none":
+        return None
+    kinds = ("associated", "raw") if source == "auto" else (source,)
+    for kind in kinds:
+        if all(kind in c.keypoints for c in cams):
+            return kind
+    if source == "auto" and not any(c.keypoints for c in cams):
+        return None
+    folder = {"associated": "pose-associated", "raw": "pose"}
+    lacking = {k: [c.name for c in cams if k not in c.keypoints] for k in kinds}
+    raise RecordingLayoutError(f"{root}: keypoints missing for camera(s) " + "; ".join(
+        f"{folder[k]}/<cam>_json: {v}" for k, v in lacking.items()) +
+        " (set data.keypoints.source: none to load without keypoints)")
+
+
+def _read_keypoints(cams: list[RecordingCamera], kind: str, frames: range, fmt: str
+                    ) -> tuple[list[list[torch.Tensor]], str]:
+    """``people[t][c]`` ``(P, K, 3)`` and the checked format."""
+    # with format auto, the first file with a person sets the count every file must have
+    want = None if fmt == "auto" else len(keypoint_format(fmt))
+    people: list[list[torch.Tensor]] = [[] for _ in frames]
+    for cam in cams:
+        folder = cam.keypoints[kind]
+        files = numbered_files(folder, (".json",))
+        for i, t in enumerate(frames):
+            if t not in files:
+                raise FrameSourceError(f"{folder}: no keypoint file for frame {t} (the files "
+                                       f"are numbered {min(files)}..{max(files)})")
+            x = read_openpose_json(files[t], want)
+            want = want or (x.shape[1] if x.shape[0] else None)
+            people[i].append(x)
+    flat = [x for frame in people for x in frame]
+    where = ", ".join(str(c.keypoints[kind]) for c in cams)
+    return people, check_keypoint_format(fmt, flat, where)
+
+
+def _scale_joints(joints: torch.Tensor, scale: float) -> torch.Tensor:
+    """Pixels of the full-size images to the scaled ones (``u' + 0.5 = s (u + 0.5)``)."""
+    seen = joints[..., 2:3] > 0
+    uv = scale * (joints[..., :2] + 0.5) - 0.5
+    return torch.where(seen, torch.cat([uv, joints[..., 2:3]], -1), torch.zeros_like(joints))
+
+
+def _canvas(sources: list, cams: list[RecordingCamera], scale: float) -> tuple[int, int]:
+    """``(W, H)`` of the image tensor: the largest scaled view; views may be smaller only by
+    a codec's crop (they are padded at the right / bottom)."""
+    biggest = [max(s.size[i] for s in sources) for i in (0, 1)]
+    if any(b - v >= CROP_TOLERANCE for s in sources for b, v in zip(biggest, s.size)):
+        raise FrameSourceError(
+            "views of different image sizes cannot share one image tensor: " + ", ".join(
+                f"{c.frames} {s.size[0]}x{s.size[1]}" for s, c in zip(sources, cams)))
+    sizes = [scaled_size(s.size, scale) for s in sources]
+    return max(w for w, _ in sizes), max(h for _, h in sizes)
+
+
+def _load_keypoints(cams: list[RecordingCamera], kind: str, kp: dict[str, Any], frames: range,
+                    rig: CameraRig, scale: float) -> tuple[torch.Tensor, str, dict]:
+    """``joints2d (T, C, K, 3)`` float32 in the scaled images' pixels, the format, and the
+    selection report."""
+    people, fmt = _read_keypoints(cams, kind, frames, kp["format"])
+    K = len(keypoint_format(fmt))
+    if kind == "raw" or any(x.shape[0] > 1 for frame in people for x in frame):
+        joints, selection = select_person(people, rig, kp["min_confidence"])
+        selection["method"] = "triangulation"
+    else:
+        joints = torch.stack([torch.stack([
+            x[0] if x.shape[0] else torch.zeros(K, 3, dtype=torch.float64) for x in frame])
+            for frame in people])
+        low = joints[..., 2] < kp["min_confidence"]
+        joints = torch.where(low[..., None], torch.zeros_like(joints), joints)
+        agree = person_agreement(joints, rig)
+        selection = {"method": "associated", "views": {
+            cam.name: {"people": [int(frame[c].shape[0]) for frame in people],
+                       "agreement_px": [None if math.isnan(v) else round(v, 2)
+                                        for v in agree[:, c].tolist()]}
+            for c, cam in enumerate(cams)}}
+    return _scale_joints(joints, scale).float(), fmt, selection
+
+
+def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | None = None,
+                   start: int = 0, stop: int | None = None, stride: int = 1,
+                   scale: float = 0.5, keypoints: Mapping[str, Any] | None = None,
+                   masks: str = "auto", fps: float | None = None,
+                   unit: str | float | None = None, seed: int = 0):
+    """A recording folder as a :class:`~torchmocap.data.Sequence` (``scenario="recorded"``).
+
+    Args:
+        path: the recording folder (layout: :mod:`torchmocap.data.recording_files`).
+        cameras: the cameras to load, by name (``"cam01"``, or anything with its number) or by
+            index in name order; None = all.
+        start, stop, stride: frames ``start, start + stride, … < stop`` (stop None = the end).
+        scale: image scale in (0, 1]; the rig is scaled with
+            :meth:`~torchmocap.cameras.CameraRig.scaled_images`, keypoints with it.
+        keypoints: ``source`` (``auto``: the associated files when every camera has them,
+            else the raw ones, else none; ``associated``; ``raw``; ``none``), ``format``
+            (``auto``, ``body_25b``, ``body_25``, ``coco_17``, ``halpe_26``), ``min_confidence``
+            (keypoints below it count as missed: confidence and position 0). Defaults:
+            :data:`KEYPOINT_DEFAULTS`.
+        masks: ``auto`` (mask files when every camera has them), ``files`` (required),
+            ``none``.
+        fps: frame rate of image folders (videos carry theirs; default 25 with a warning).
+        unit: length unit of the calibration's translations; None = the format's default
+            (TOML and intri/extri metres, Bouguet millimetres).
+        seed: unused (loading is deterministic); accepted like every data source's.
+
+    Returns:
+        the :class:`~torchmocap.data.Sequence`: ``fps``, ``rig`` (float32, the chosen cameras,
+        scaled), ``images (T, C, H, W, 3)`` uint8, ``view_dropped (T, C)`` False,
+        ``silhouettes (T, C, H, W)`` bool when masks are loaded, ``joints2d (T, C, K, 3)``
+        float32 (u, v, confidence in the scaled images' pixels; zeros = not detected) with
+        ``joint_names`` the format's keypoint names when keypoints are loaded, and ``meta``:
+        ``source: "recording"``, ``path``, ``calibration``, ``cameras``,
+        ``calibration_names``, ``frames`` (video / folder per camera), ``frame_indices``,
+        ``fps``, ``fps_source``, ``scale``, ``image_sizes`` (decoded, per camera),
+        ``calibrated_image_sizes``, ``keypoint_format``, ``keypoint_source``, ``selection``
+        (per view: people per frame, the chosen person, frames with several people,
+        reprojection agreement in px of the full-size images), ``masks`` (the folders or
+        None), ``background`` (plate paths per camera), ``images_bytes``.
+
+    Raises:
+        RecordingLayoutError: missing folder, calibration, frames or keypoints (named).
+        CameraError: a camera without (or with ambiguous) calibration, a calibrated size that
+            is not the decoded one.
+        FrameSourceError: unreadable videos/images/masks, videos of different rates or
+            lengths, missing per-frame files (named).
+        KeypointFormatError: keypoint files of another format, empty or unparsable.
+        ValueError: a setting out of bounds (named ``data.<setting>``).
+
+    Example:
+        >>> seq = load_recording("pose2sim_balancing", stop=4, cameras=["cam03"])  # doctest: +SKIP
+        >>> seq.images.shape, seq.joints2d.shape                                   # doctest: +SKIP
+        (torch.Size([4, 1, 960, 544, 3]), torch.Size([4, 1, 25, 3]))
+    """
+    from torchmocap.data.sequence import Sequence as Seq
+
+    files = discover_recording(path)
+    chosen = _choose_cameras(files.cameras, cameras)
+    if masks not in _MASKS:
+        raise ValueError(f"data.masks: expected one of {list(_MASKS)}, got {masks!r}")
+    kp = _keypoint_settings(keypoints)
+    opened: dict[str, Any] = {}
+    sources = [opened.setdefault(c.name, open_frames(c.frames)) for c in chosen]
+    rate, length, fps_source = _check_streams(sources, chosen, fps, stop)
+    try:
+        frames = check_frame_range(length, start, stop, stride, scale, "the recording")
+    except ValueError as e:
+        raise ValueError(f"data.{e}") from None
+    if fps_source == "default" and len(frames) > 1:
+        warnings.warn(f"{files.root}: image folders carry no frame rate; using "
+                      f"{DEFAULT_FPS:g} fps (set data.fps)", stacklevel=2)
+    full = read_calibration(files.calibration, _LazySizes(files.cameras, opened), unit)
+    idx = _match_calibration(full, chosen, files.calibration)
+    calibrated = full.subset(idx)
+    rig = _check_sizes(calibrated, sources, chosen, files.calibration)
+
+    canvas = _canvas(sources, chosen, scale)
+    kind = _keypoint_kind(chosen, kp["source"], files.root)
+    joints2d, fmt, selection = (None, None, None) if kind is None else \
+        _load_keypoints(chosen, kind, kp, frames, rig, scale)
+    use_masks = masks == "files" or (masks == "auto" and all(c.masks for c in chosen))
+    if use_masks:
+        lacking = [c.name for c in chosen if c.masks is None]
+        if lacking:
+            raise RecordingLayoutError(f"{files.root}: no mask folder (masks/<cam>/ or FG<i>/) "
+                                       f"for camera(s) {lacking}")
+    T, C = len(frames), len(chosen)
+    images = torch.zeros(T, C, canvas[1], canvas[0], 3, dtype=torch.uint8)
+    log.info("loading %d frames x %d views of %dx%d: %.2f GB of images", T, C, *canvas,
+             images.numel() / 1e9)
+    for c, src in enumerate(sources):
+        w, h = scaled_size(src.size, scale)
+        for t, frame in enumerate(src.frames(frames.start, frames.stop, frames.step, scale)):
+            images[t, c, :h, :w].numpy()[:] = frame
+    silhouettes = None
+    if use_masks:
+        silhouettes = torch.zeros(T, C, canvas[1], canvas[0], dtype=torch.bool)
+        for c, (src, cam) in enumerate(zip(sources, chosen)):
+            w, h = scaled_size(src.size, scale)
+            for t, m in enumerate(_read_masks(cam, frames, src.size, scale)):
+                silhouettes[t, c, :h, :w].numpy()[:] = m
+
+    meta = {
+        "source": "recording", "path": str(files.root), "calibration": str(files.calibration),
+        "cameras": [c.name for c in chosen], "calibration_names": calibrated.names,
+        "frames": {c.name: str(c.frames) for c in chosen},
+        "frame_indices": list(frames), "fps": rate, "fps_source": fps_source, "scale": scale,
+        "image_sizes": {c.name: list(s.size) for c, s in zip(chosen, sources)},
+        "calibrated_image_sizes": {c.name: [int(v) for v in calibrated.image_size[i].tolist()]
+                                   for i, c in enumerate(chosen)},
+        "keypoint_format": fmt, "keypoint_source": kind, "selection": selection,
+        "masks": {c.name: str(c.masks) for c in chosen} if use_masks else None,
+        "background": {c.name: [str(p) for p in c.background] for c in chosen},
+        "images_bytes": images.numel(),
+    }
+    return Seq(fps=rate, scenario="recorded", rig=rig.scaled_images(scale).float(),
+               silhouettes=silhouettes, view_dropped=torch.zeros(T, C, dtype=torch.bool),
+               images=images, joints2d=joints2d,
+               joint_names=[] if fmt is None else list(keypoint_format(fmt)), meta=meta)
