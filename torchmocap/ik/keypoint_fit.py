@@ -443,7 +443,8 @@ def fit_keypoint_subject(
         seed: seed of the random poses that find the pose-invariant keypoint pairs.
 
     Returns:
-        :class:`KeypointFit`.
+        :class:`KeypointFit`, computed in float64 on the CPU (a few frames, once per
+        recording), wherever ``points`` lie.
 
     Raises:
         ValueError: bad shapes or values (named), a frame with fewer than 4 usable keypoints,
