@@ -5,13 +5,14 @@ any importable package). :func:`build` instantiates a config tree bottom-up with
 ``hydra.utils.instantiate`` — children first, then their parent with the built children — and
 passes the **runtime dependencies** a constructor asks for by parameter name:
 
-================  ===============================================================================
-``skeleton``      the tracking :class:`~torchmocap.skeleton.Skeleton` (the subject's model)
-``body``          its :class:`~torchmocap.body.CapsuleBody`
-``rig``           the :class:`~torchmocap.cameras.CameraRig` of the sequence's views
-``manifold``      the :class:`~torchmocap.ik.SensorManifold` of the tracking IMUs (None without)
-``depth_camera``  the one-camera rig of the depth points (None without depth)
-================  ===============================================================================
+==================  ===============================================================================
+``skeleton``        the tracking :class:`~torchmocap.skeleton.Skeleton` (the subject's model)
+``body``            its :class:`~torchmocap.body.CapsuleBody`
+``rig``             the :class:`~torchmocap.cameras.CameraRig` of the sequence's views
+``manifold``        the :class:`~torchmocap.ik.SensorManifold` of the tracking IMUs (None without)
+``depth_camera``    the one-camera rig of the depth points (None without depth)
+``keypoint_names``  the column names of the sequence's 2D detections (``joint_names``)
+==================  ===============================================================================
 
 So a user's class enters a tracker through YAML alone::
 
@@ -52,7 +53,7 @@ __all__ = [
 ]
 
 #: Names of the runtime dependencies :func:`build` passes to constructors that accept them.
-DEPENDENCIES = ("skeleton", "body", "rig", "manifold", "depth_camera")
+DEPENDENCIES = ("skeleton", "body", "rig", "manifold", "depth_camera", "keypoint_names")
 
 
 class ComponentError(ValueError):
@@ -64,7 +65,8 @@ class Runtime:
     """The runtime dependencies of components (see the module docstring).
 
     Attributes:
-        skeleton, body, rig, manifold, depth_camera: see :data:`DEPENDENCIES`.
+        skeleton, body, rig, manifold, depth_camera, keypoint_names: see
+            :data:`DEPENDENCIES`.
         sensors: ``{sensor: bone}`` of the tracking IMUs.
     """
 
@@ -74,13 +76,15 @@ class Runtime:
     manifold: Any = None
     sensors: dict[str, str] = field(default_factory=dict)
     depth_camera: Any = None
+    keypoint_names: list[str] | None = None
 
     @classmethod
     def from_sequence(cls, sequence, skeleton=None, dtype: torch.dtype = torch.float32
                       ) -> Runtime:
         """Dependencies for tracking ``sequence``: the subject's skeleton (``skeleton``, else
         the ground truth's, else ``sequence.meta["subject_skeleton"]``), its capsule body, the
-        rig and the sensor manifold of the tracking IMUs."""
+        rig, the sensor manifold of the tracking IMUs and the names of the 2D detections'
+        columns (``sequence.joint_names``)."""
         from torchmocap.body import CapsuleBody
         from torchmocap.ik import SensorManifold
         from torchmocap.skeleton import Skeleton
@@ -101,8 +105,11 @@ class Runtime:
         manifold = SensorManifold(skeleton, sensors) if sensors else None
         rig = None if sequence.rig is None else sequence.rig.to(dtype)
         depth_camera = None if sequence.depth is None else sequence.depth.camera.to(dtype)
+        keypoint_names = (list(sequence.joint_names) if sequence.joints2d is not None
+                          and sequence.joint_names else None)
         return cls(skeleton=skeleton, body=CapsuleBody(skeleton).to(dtype), rig=rig,
-                   manifold=manifold, sensors=sensors, depth_camera=depth_camera)
+                   manifold=manifold, sensors=sensors, depth_camera=depth_camera,
+                   keypoint_names=keypoint_names)
 
 
 def _accepts(fn, name: str) -> tuple[bool, bool]:

@@ -1,13 +1,24 @@
 """torchmocap.evaluation: what a run is scored by — with ground truth (orientation error,
-MPJPE, held DoFs, hypotheses, marker error) or without it (the views' detections and masks) —
-and the summaries of a track's per-frame diagnostics. Library functions that the command line
-and the experiments both call; :func:`evaluate_track` scores a finished track in one call.
+MPJPE, held DoFs, hypotheses, marker error) or without it (a held-out camera's detections,
+bone-length constancy, jitter, silhouette agreement) — and the summaries of a track's per-frame
+diagnostics. Library functions that the command line and the experiments both call;
+:func:`evaluate_track` scores a finished track in one call.
+
+Without ground truth: :func:`reprojection_scores` (pixel error and PCK of a reconstruction in
+one view's detections) and :func:`leave_one_camera_out` (:mod:`~torchmocap.evaluation.heldout`);
+:func:`bone_length_cv` and :func:`jitter` (:mod:`~torchmocap.evaluation.consistency`).
 """
 
+from torchmocap.evaluation.consistency import BoneLengthCV, Jitter, bone_length_cv, jitter
 from torchmocap.evaluation.diagnostics import (
     hypothesis_arrays,
     smoother_report,
     summarize_diagnostics,
+)
+from torchmocap.evaluation.heldout import (
+    ReprojectionScores,
+    leave_one_camera_out,
+    reprojection_scores,
 )
 from torchmocap.evaluation.track import TrackEvaluation, evaluate_track
 from torchmocap.evaluation.truth import (
@@ -26,16 +37,23 @@ from torchmocap.evaluation.warnings import EvaluationWarning
 
 __all__ = [
     "VALIDATION_BONES_FALLBACK",
+    "BoneLengthCV",
     "EvaluationWarning",
+    "Jitter",
+    "ReprojectionScores",
     "TrackEvaluation",
+    "bone_length_cv",
     "energy_below_truth",
     "error_means",
     "evaluate_track",
     "held_dofs",
     "hypothesis_arrays",
     "hypothesis_errors",
+    "jitter",
+    "leave_one_camera_out",
     "marker_error",
     "reprojection_error",
+    "reprojection_scores",
     "root_joint",
     "silhouette_agreement",
     "smoother_report",

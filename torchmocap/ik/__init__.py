@@ -1,6 +1,7 @@
 """Inverse kinematics: the analytic sensor-manifold map of Pons-Moll et al. (2010), kinematic flips
-(interpretation trees) and limb IK of Sminchisescu & Triggs (2003), and the projection of joint
-positions onto the skeleton of Hauberg & Pedersen (2011)."""
+(interpretation trees) and limb IK of Sminchisescu & Triggs (2003), the projection of joint
+positions onto the skeleton of Hauberg & Pedersen (2011), and fitting a subject (bone lengths and
+first poses) to a recording's triangulated keypoints."""
 
 from torchmocap.ik.flip_tree import (
     MAX_TREE_LINKS,
@@ -8,6 +9,7 @@ from torchmocap.ik.flip_tree import (
     flip_patterns,
     interpretation_tree,
 )
+from torchmocap.ik.keypoint_fit import SEATED, TRUNK_HOLD, KeypointFit, fit_keypoint_subject
 from torchmocap.ik.limb import (
     HUMAN31_LIMBS,
     LimbIK,
@@ -34,14 +36,18 @@ __all__ = [
     "MAX_TREE_LINKS",
     "PAPER_SENSORS",
     "InterpretationTree",
+    "KeypointFit",
     "LimbIK",
     "LimbIKResult",
     "LimbSpec",
     "ManifoldSolution",
     "ProjectionResult",
     "SensorManifold",
+    "SEATED",
     "SensorManifoldError",
+    "TRUNK_HOLD",
     "SkeletonProjection",
+    "fit_keypoint_subject",
     "flip_patterns",
     "interpretation_tree",
     "limb_dofs",

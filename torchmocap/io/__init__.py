@@ -1,4 +1,5 @@
-"""Motion-capture file I/O: BVH and ASF/AMC readers, BVH writer, skeleton maps."""
+"""Motion-capture file I/O: BVH and ASF/AMC readers, BVH writer, TRC marker reader, skeleton
+maps."""
 
 from torchmocap.io.asf import AsfSkeleton, read_amc, read_asf, read_asf_amc
 from torchmocap.io.bvh import read_bvh, write_bvh
@@ -22,6 +23,7 @@ from torchmocap.io.skeleton_maps import (
     resolve_skeleton_map,
     unmapped_joints,
 )
+from torchmocap.io.trc import TRC_Y_UP_TO_Z_UP, TrcData, read_trc, trc_to_z_up
 
 __all__ = [
     "AsfSkeleton",
@@ -37,6 +39,8 @@ __all__ = [
     "MotionFormatError",
     "SkeletonMap",
     "SkeletonMapError",
+    "TRC_Y_UP_TO_Z_UP",
+    "TrcData",
     "Y_UP_TO_Z_UP",
     "chain_height",
     "detect_family",
@@ -49,7 +53,9 @@ __all__ = [
     "load_skeleton_map",
     "map_joints",
     "read_bvh",
+    "read_trc",
     "resolve_skeleton_map",
+    "trc_to_z_up",
     "unmapped_joints",
     "write_bvh",
 ]

@@ -2,7 +2,8 @@
 
 The interface (:class:`Likelihood`, :class:`Poses`, :class:`WeightedSum`, :class:`FrameEnergy`)
 is in :mod:`torchmocap.likelihoods.base`; terms: multi-view silhouette (hard/smooth, Pons-Moll
-eq. 17 V_silh), appearance (colour consistency, V_app), sensor orientation (the S of GS/LS);
+eq. 17 V_silh), appearance (colour consistency, V_app), sensor orientation (the S of GS/LS),
+2D joints and a detector's keypoints (robust reprojection);
 learned terms (:mod:`~torchmocap.likelihoods.learned`: features at the projected body, a CNN on
 soft renderings), trained by ``torchmocap-train``.
 """
@@ -32,6 +33,7 @@ from torchmocap.likelihoods.joints2d import (
     predicted_hidden,
     robust_cost,
 )
+from torchmocap.likelihoods.keypoints import KeypointLikelihood
 from torchmocap.likelihoods.learned import (
     ArchitectureMismatchError,
     LearnedLikelihood,
@@ -60,6 +62,7 @@ __all__ = [
     "Joints2DLikelihood",
     "JointLimitLikelihood",
     "Joints2DObservation",
+    "KeypointLikelihood",
     "LearnedFeatureLikelihood",
     "LearnedLikelihood",
     "LearnedRenderLikelihood",

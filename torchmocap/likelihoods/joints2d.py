@@ -163,7 +163,7 @@ def _empty_energy(obs: Joints2DObservation, robust: str) -> float:
 
 
 def joints2d_energy(positions: torch.Tensor, observation: Joints2DObservation, rig,
-                    scale_px: float = 4.0, robust: str = "cauchy",
+                    scale_px: float | torch.Tensor = 4.0, robust: str = "cauchy",
                     reduction: str = "sum") -> torch.Tensor:
     """The robust 2D-joint energy of joint positions (module docstring).
 
@@ -171,7 +171,8 @@ def joints2d_energy(positions: torch.Tensor, observation: Joints2DObservation, r
         positions: ``(P, J, 3)`` world joint centres (metres) of the skeleton's joints.
         observation: :class:`Joints2DObservation` (``Joints2DLikelihood.prepare``).
         rig: :class:`~torchmocap.cameras.CameraRig` with ``C`` cameras.
-        scale_px: robust scale ``s`` in pixels.
+        scale_px: robust scale ``s`` in pixels: a number, or a ``(C,)`` tensor of one scale
+            per camera (differentiable).
         robust: one of :data:`ROBUST_COSTS`.
         reduction: ``"sum"`` or ``"mean"``.
 
@@ -185,6 +186,8 @@ def joints2d_energy(positions: torch.Tensor, observation: Joints2DObservation, r
     X = positions.index_select(-2, observation.joints.to(positions.device))
     pix = rig.project(X)[0]  # (P, C, J', 2)
     r = pix - observation.uv.to(pix)
+    if isinstance(scale_px, torch.Tensor):
+        scale_px = scale_px.to(pix)[:, None]  # (C, 1): per camera
     z = (r * r).sum(-1) / (scale_px * scale_px)
     rho, _ = robust_cost(z, robust)
     w = observation.weight.to(pix)
