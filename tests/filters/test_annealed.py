@@ -8,7 +8,6 @@ import pytest
 import torch
 
 from torchmocap.filters.annealed import (
-    AnnealedParticleOptimiser,
     AnnealingResult,
     CovarianceDiffusion,
     GeometricDiffusion,
@@ -19,6 +18,13 @@ from torchmocap.filters.annealed import (
     weighted_mean,
 )
 from torchmocap.filters.annealing import PolynomialSchedule
+from torchmocap.filters.resampling import (
+    KeepRedrawResampler,
+    MultinomialResampler,
+    ResidualResampler,
+    StratifiedResampler,
+    SystematicResampler,
+)
 
 
 def rippled_quadratic(dim: int, amplitude: float = 0.1, period: float = 0.5):
@@ -52,14 +58,15 @@ class TestRecovery:
         assert float((x - xstar).abs().max()) > 0.3  # ... to a ripple, not the minimum
 
     @pytest.mark.parametrize(
-        "selection", ["multinomial", "systematic", "stratified", "residual", "keep_redraw"]
+        "selection", [MultinomialResampler, SystematicResampler, StratifiedResampler,
+                      ResidualResampler, KeepRedrawResampler], ids=lambda c: c.__name__
     )
     def test_recovers_minimum_d16(self, selection):
         """D = 16, 500 particles, 40 layers: every coordinate lands in the right ripple basin
         (|error| < 0.15 ≪ λ/2 = 0.25) and the mean error is < 0.05 (broken variants: ≥ 0.4)."""
         xstar, energy = rippled_quadratic(16)
         x0, g = _start(xstar, 500, seed=1)
-        res = anneal(energy, x0, layers=40, selection=selection, generator=g)
+        res = anneal(energy, x0, layers=40, selection=selection(), generator=g)
         err = (res.estimate - xstar).abs()
         assert float(err.max()) < 0.15, err
         assert float(err.mean()) < 0.05, err
@@ -216,22 +223,6 @@ class TestAnnealer:
         # the constrained optimum sits on the bounds
         assert torch.allclose(res.estimate, torch.tensor([1.0, 0.0, 0.5]), atol=0.1)
 
-    def test_module(self):
-        xstar, energy = rippled_quadratic(5)
-        x0, _ = _start(xstar, 80, seed=5)
-        opt = AnnealedParticleOptimiser(layers=6, selection="systematic", lower=-2.0, upper=2.0)
-        a = opt(energy, x0, torch.Generator().manual_seed(3))
-        b = anneal(
-            energy,
-            x0,
-            layers=6,
-            selection="systematic",
-            lower=-2.0,
-            upper=2.0,
-            generator=torch.Generator().manual_seed(3),
-        )
-        assert torch.equal(a.estimate, b.estimate) and torch.equal(a.ess, b.ess)
-
     def test_infinite_energies_get_zero_weight(self):
         energy = lambda x: torch.where(
             x[:, 0] > 0, (x**2).sum(-1), torch.full_like(x[:, 0], math.inf)
@@ -278,14 +269,16 @@ class TestAnnealer:
             anneal(good, x0, lower=1.0, upper=0.0)
         with pytest.raises(ValueError, match="boundary"):
             anneal(good, x0, boundary="wrap")
-        with pytest.raises(ValueError, match="selection"):
-            anneal(good, x0, selection="bogus")
         with pytest.raises(ValueError, match="schedule"):
             anneal(good, x0, schedule=lambda k, v: torch.tensor(float("nan")))
         with pytest.raises(ValueError, match="sigma0"):
             anneal(good, x0, diffusion=GeometricDiffusion(torch.ones(2)))
         with pytest.raises(ValueError, match="layers"):
-            AnnealedParticleOptimiser(layers=-1)
+            anneal(good, x0, layers=-1)
+        with pytest.raises(TypeError, match="schedule object"):
+            anneal(good, x0, schedule="ess")
+        with pytest.raises(TypeError, match="selection: expected a resampler object"):
+            anneal(good, x0, selection="systematic")
 
 
 class TestDiffusion:

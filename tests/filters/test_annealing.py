@@ -12,9 +12,9 @@ from torchmocap.filters.annealing import (
     GeometricSchedule,
     PolynomialSchedule,
     annealing_log_weights,
+    as_schedule,
     ess_fraction_at_beta,
     ess_target_beta,
-    get_schedule,
 )
 from torchmocap.filters.resampling import ess_fraction
 
@@ -172,14 +172,11 @@ class TestSchedules:
         with pytest.raises(ValueError, match="alpha"):
             ESSSchedule(alpha=2.0)
 
-    def test_get_schedule(self):
-        assert isinstance(get_schedule(None), ESSSchedule)
-        assert isinstance(get_schedule("ess"), ESSSchedule)
-        assert isinstance(get_schedule("polynomial"), PolynomialSchedule)
-        assert isinstance(get_schedule("geometric"), GeometricSchedule)
+    def test_as_schedule(self):
+        """Schedules are objects (configs choose one by ``_target_``); no name lookup."""
+        assert isinstance(as_schedule(None), ESSSchedule)
         f = lambda k, v: torch.tensor(1.0)
-        assert get_schedule(f) is f
-        with pytest.raises(ValueError, match="schedule"):
-            get_schedule("nope")
-        with pytest.raises(TypeError, match="schedule"):
-            get_schedule(1.0)
+        assert as_schedule(f) is f
+        for bad in ("ess", "polynomial", 1.0):
+            with pytest.raises(TypeError, match="schedule"):
+                as_schedule(bad)

@@ -239,8 +239,10 @@ def test_inference_settings_are_objects_or_names():
     assert "ESSSchedule(alpha=0.3" in repr(inf) and "Systematic" in repr(inf)
     with pytest.raises(ValueError, match="layers"):
         AnnealedInference(layers=0)
-    with pytest.raises(ValueError, match="schedule"):
-        AnnealedInference(schedule="nope")
+    with pytest.raises(TypeError, match="schedule"):
+        AnnealedInference(schedule="ess")
+    with pytest.raises(TypeError, match="selection"):
+        AnnealedInference(selection="multinomial")
     with pytest.raises(ValueError, match="round_scale"):
         AnnealedInference(round_scale=0)
 

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from torchmocap.filters.local import LocalOptimiser, LocalResult, minimise_local
+from torchmocap.filters.local import LocalResult, minimise_local
 
 F64 = torch.float64
 
@@ -217,11 +217,11 @@ class TestErrors:
         with pytest.raises(ValueError, match="history"):
             minimise_local(good, x0, history=0)
         with pytest.raises(ValueError, match="method"):
-            LocalOptimiser(method="sgd")
+            minimise_local(good, x0, method="sgd")
 
     def test_a_registered_optimiser_is_dispatched_to_by_name(self, monkeypatch):
-        """``OPTIMISERS`` is the one table of methods: minimise_local, LocalOptimiser and
-        LocalInference accept a name once it is registered and refuse it otherwise."""
+        """``OPTIMISERS`` is the one table of methods: minimise_local and LocalInference accept
+        a name once it is registered and refuse it otherwise."""
         from torchmocap.filters import LocalInference, local
         from torchmocap.skeleton import human31
 
@@ -237,13 +237,5 @@ class TestErrors:
             LocalInference(human31(), method="fake")
         monkeypatch.setitem(local.OPTIMISERS, "fake", fake)
         minimise_local(energy, x0, method="fake", iterations=3, lr=0.5, history=4, tol=1e-6)
-        LocalOptimiser("fake", iterations=2)(energy, x0)
         LocalInference(human31(), method="fake")
-        assert calls == [(3, 4, 0.5, 1e-6), (2, 10, 1e-2, 1e-9)]
-
-    def test_module(self):
-        m, _, energy = _quadratic(4, 3, seed=5)
-        x0 = torch.zeros(4, 3, dtype=F64)
-        a = LocalOptimiser("lbfgs", iterations=10, lower=-0.5)(energy, x0)
-        b = minimise_local(energy, x0, iterations=10, lower=-0.5)
-        assert torch.equal(a.x, b.x) and torch.equal(a.trace, b.trace)
+        assert calls == [(3, 4, 0.5, 1e-6)]

@@ -9,11 +9,8 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from torchmocap.filters.prediction import (
-    AutoregressivePredictor,
     RotationGroup,
     angles_from_matrix,
-    fit_ar3,
-    fit_rotation_increments,
     predict_ar3,
     skeleton_rotation_groups,
 )
@@ -67,14 +64,6 @@ class TestScalarModes:
         lin = torch.tensor([[1.0], [3.0], [5.0]], dtype=F64)
         assert predict_ar3(lin, "damped", damping=(1.0, 0.0)).item() == pytest.approx(7.0)
 
-    def test_least_squares_coefficients(self):
-        h = torch.randn(7, 3, 4, generator=torch.Generator().manual_seed(1), dtype=F64)
-        a = torch.randn(4, 3, generator=torch.Generator().manual_seed(2), dtype=F64)
-        expect = a[:, 0] * h[:, 2] + a[:, 1] * h[:, 1] + a[:, 2] * h[:, 0]
-        assert torch.allclose(predict_ar3(h, "least_squares", coefficients=a), expect)
-        shared = predict_ar3(h, "least_squares", coefficients=torch.tensor([3.0, -3.0, 1.0]))
-        assert torch.allclose(shared, predict_ar3(h))
-
     def test_limits(self):
         h = torch.tensor([[0.0, 0.0, 0.0], [1.0, -1.0, 0.1], [2.0, -2.0, 0.2]])
         out = predict_ar3(h, lower=torch.tensor([-1.0, -1.0, -1.0]), upper=2.5)
@@ -91,10 +80,8 @@ class TestScalarModes:
             predict_ar3(torch.full((3, 2), float("nan")))
         with pytest.raises(ValueError, match="mode"):
             predict_ar3(torch.zeros(3, 2), "cubic")
-        with pytest.raises(ValueError, match="coefficients"):
+        with pytest.raises(ValueError, match="mode"):
             predict_ar3(torch.zeros(3, 2), "least_squares")
-        with pytest.raises(ValueError, match="coefficients"):
-            predict_ar3(torch.zeros(3, 2), "least_squares", coefficients=torch.zeros(3, 3))
         with pytest.raises(ValueError, match="rotation_groups"):
             predict_ar3(torch.zeros(3, 4), rotation_groups=[(1, 2, 9)])
         with pytest.raises(ValueError, match="rotation_groups"):
@@ -103,70 +90,6 @@ class TestScalarModes:
             RotationGroup((0, 0, 1))
         with pytest.raises(ValueError, match="upper"):
             predict_ar3(torch.zeros(3, 2), upper=torch.zeros(3))
-
-
-class TestLeastSquares:
-    def test_recovers_known_ar_coefficients(self):
-        """Synthetic AR(3) data with known per-DoF coefficients: recovered to 0.02."""
-        true = torch.tensor(
-            [[1.5, -0.6, 0.05], [2.2, -1.6, 0.38], [0.5, 0.2, 0.1]], dtype=F64
-        )  # stable
-        g = torch.Generator().manual_seed(3)
-        trajs = []
-        for _ in range(4):
-            x = torch.zeros(2000, 3, dtype=F64)
-            noise = torch.randn(2000, 3, generator=g, dtype=F64)
-            for t in range(3, 2000):
-                x[t] = true[:, 0] * x[t - 1] + true[:, 1] * x[t - 2] + true[:, 2] * x[t - 3]
-                x[t] += noise[t]
-            trajs.append(x)
-        coef = fit_ar3(trajs, ridge=0.0)
-        assert coef.shape == (3, 3)
-        assert torch.allclose(coef, true, atol=0.02), coef
-        # batched tensor input gives the same fit
-        assert torch.allclose(fit_ar3(torch.stack(trajs), ridge=0.0), coef)
-        # prediction with the fit beats constant acceleration on held-out data
-        h = trajs[0][-200:].unfold(0, 4, 1).permute(0, 2, 1)  # (197, 4, D) windows
-        ls = predict_ar3(h[:, :3], "least_squares", coefficients=coef)
-        ca = predict_ar3(h[:, :3])
-        assert (ls - h[:, 3]).pow(2).mean() < 0.5 * (ca - h[:, 3]).pow(2).mean()
-
-    def test_ridge_pulls_to_constant_position(self):
-        x = torch.randn(300, 2, generator=torch.Generator().manual_seed(4), dtype=F64)
-        coef = fit_ar3(x, ridge=1e6)
-        assert torch.allclose(coef, torch.tensor([[1.0, 0.0, 0.0]] * 2, dtype=F64), atol=1e-4)
-
-    def test_exception(self):
-        with pytest.raises(ValueError, match="trajectories"):
-            fit_ar3(torch.zeros(4, 2))
-        with pytest.raises(ValueError, match="trajectories"):
-            fit_ar3([])
-        with pytest.raises(ValueError, match="trajectories"):
-            fit_ar3([torch.zeros(10, 2), torch.zeros(10, 3)])
-        with pytest.raises(ValueError, match="trajectories"):
-            fit_ar3(torch.zeros(2, 2, 10, 2))
-        with pytest.raises(ValueError, match="ridge"):
-            fit_ar3(torch.zeros(10, 2), ridge=-1.0)
-
-    def test_module(self):
-        g = torch.Generator().manual_seed(5)
-        x = torch.cumsum(torch.randn(500, 6, generator=g, dtype=F64) * 0.05, 0)
-        p = AutoregressivePredictor.fit(x, rotation_groups=[(3, 4, 5)], upper=10.0)
-        assert p.mode == "least_squares"
-        h = x[100:103]
-        expect = predict_ar3(
-            h,
-            "least_squares",
-            coefficients=fit_ar3(x),
-            rotation_groups=[(3, 4, 5)],
-            rotation_coefficients=fit_rotation_increments(x, (3, 4, 5))[None],
-            upper=10.0,
-        )
-        assert torch.allclose(p(h), expect)
-        with pytest.raises(ValueError, match="coefficients"):
-            AutoregressivePredictor("least_squares")
-        with pytest.raises(ValueError, match="mode"):
-            AutoregressivePredictor("x")
 
 
 class TestRotations:
@@ -277,34 +200,6 @@ class TestRotations:
             angles_from_matrix(tm, tm(th), th[:4])
         with pytest.raises(ValueError, match="R"):
             angles_from_matrix(tm, th, th)
-
-    def test_fit_rotation_increments(self):
-        """Body-frame increments generated by δ_t = u δ_{t−1} + v δ_{t−2} + noise: (u, v)
-        recovered; the fitted predictor beats constant acceleration."""
-        u, v = 1.3, -0.45
-        g = torch.Generator().manual_seed(8)
-        T = 3000
-        d = torch.zeros(T, 3, dtype=F64)
-        d[0] = d[1] = torch.tensor([0.05, -0.02, 0.03], dtype=F64)
-        noise = 0.01 * torch.randn(T, 3, generator=g, dtype=F64)
-        for t in range(2, T):
-            d[t] = u * d[t - 1] + v * d[t - 2] + noise[t]
-        R = [torch.eye(3, dtype=F64)]
-        steps = so3_exp(d)
-        for t in range(1, T):
-            R.append(R[-1] @ steps[t])
-        rv = so3_log(torch.stack(R))
-        eul = angles_seq = torch.tensor(
-            Rotation.from_matrix(torch.stack(R).numpy()).as_euler("ZYX")
-        )
-        del angles_seq
-        uv = fit_rotation_increments(rv, (0, 1, 2), ridge=0.0)
-        assert torch.allclose(uv, torch.tensor([u, v], dtype=F64), atol=0.03), uv
-        uv_e = fit_rotation_increments(eul, RotationGroup((0, 1, 2), to_matrix=ZYX), ridge=0.0)
-        assert torch.allclose(uv_e, uv, atol=1e-6)
-        with pytest.raises(ValueError, match="ridge"):
-            fit_rotation_increments(rv, (0, 1, 2), ridge=-1.0)
-
 
 class TestSkeleton:
     def test_root_group_human31(self):

@@ -8,17 +8,16 @@ import pytest
 import torch
 
 from torchmocap.filters.resampling import (
-    RESAMPLERS,
     KeepRedrawResampler,
     MultinomialResampler,
     ResidualResampler,
     StratifiedResampler,
     SystematicResampler,
+    as_resampler,
     counts_to_indices,
     effective_sample_size,
     ess_fraction,
     gather_particles,
-    get_resampler,
     keep_redraw_resample,
     multinomial_resample,
     normalize_log_weights,
@@ -34,6 +33,13 @@ FUNCS = {
     "stratified": stratified_resample,
     "residual": residual_resample,
     "keep_redraw": keep_redraw_resample,
+}
+MODULES = {
+    "multinomial": MultinomialResampler,
+    "systematic": SystematicResampler,
+    "stratified": StratifiedResampler,
+    "residual": ResidualResampler,
+    "keep_redraw": KeepRedrawResampler,
 }
 
 
@@ -222,11 +228,10 @@ class TestResamplers:
 
     def test_module(self, name):
         log_w = _weights(40, 9)
-        mod = RESAMPLERS[name]()
+        mod = MODULES[name]()
         a = mod(log_w, torch.Generator().manual_seed(2))
         b = FUNCS[name](log_w, torch.Generator().manual_seed(2))
         assert torch.equal(a, b)
-        assert get_resampler(name).__class__ is RESAMPLERS[name]
 
 
 class TestVarianceProperties:
@@ -305,21 +310,17 @@ class TestHelpers:
         with pytest.raises(ValueError, match="particles"):
             gather_particles(x[0], idx)
 
-    def test_get_resampler(self):
-        assert isinstance(get_resampler("systematic"), SystematicResampler)
-        assert isinstance(get_resampler("multinomial"), MultinomialResampler)
-        assert isinstance(get_resampler("stratified"), StratifiedResampler)
-        assert isinstance(get_resampler("residual"), ResidualResampler)
-        assert isinstance(get_resampler("gall"), KeepRedrawResampler)
+    def test_as_resampler(self):
+        """Resamplers are objects (configs choose one by ``_target_``); no name lookup."""
+        assert isinstance(as_resampler(None), SystematicResampler)
+        assert isinstance(as_resampler(None, default=MultinomialResampler), MultinomialResampler)
         f = lambda lw, g=None, num=None: systematic_resample(lw, g, num)
-        assert get_resampler(f) is f
-        with pytest.raises(ValueError, match="resampler"):
-            get_resampler("bogus")
+        assert as_resampler(f) is f
+        with pytest.raises(TypeError, match="selection: expected a resampler object"):
+            as_resampler("systematic", "selection")
         with pytest.raises(TypeError, match="resampler"):
-            get_resampler(3)
+            as_resampler(3)
 
-
-class TestKeepRedraw:
     def test_uniform_keeps_all(self):
         """Equal weights: every particle is kept in place (keep probability 1)."""
         idx = keep_redraw_resample(torch.zeros(3, 50), torch.Generator().manual_seed(0))

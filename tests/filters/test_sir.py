@@ -7,6 +7,11 @@ import math
 import pytest
 import torch
 
+from torchmocap.filters.resampling import (
+    MultinomialResampler,
+    ResidualResampler,
+    StratifiedResampler,
+)
 from torchmocap.filters.sir import SIRStep, sir_filter, sir_step
 
 F64 = torch.float64
@@ -114,13 +119,15 @@ class TestAgainstKalman:
         assert abs(float(bad.log_evidence) - exact) > 2.0
         assert float(((bad.means - km).abs() / kv.sqrt()).max()) > 0.4
 
-    @pytest.mark.parametrize("resampler", ["multinomial", "stratified", "residual"])
+    @pytest.mark.parametrize("resampler", [MultinomialResampler, StratifiedResampler,
+                                           ResidualResampler], ids=lambda c: c.__name__)
     def test_resamplers(self, resampler):
         zs = _simulate()
         km, kv, _ = _kalman(zs)
         g = torch.Generator().manual_seed(4)
         x0 = torch.randn(5000, 2, generator=g, dtype=F64)
-        res = sir_filter(x0, T, _bootstrap, _log_lik(zs), generator=g, resampler=resampler)
+        res = sir_filter(x0, T, _bootstrap, _log_lik(zs), generator=g,
+                         resampler=resampler())
         assert float(((res.means - km).abs() / kv.sqrt()).max()) < 0.2
 
 

@@ -9,7 +9,7 @@ import math
 import pytest
 import torch
 
-from torchmocap.filters import SIRInference, WeightedMeanEstimator
+from torchmocap.filters import SIRInference, SystematicResampler, WeightedMeanEstimator
 from torchmocap.proposals import PreviousFrame, Proposal, ProposalContext, Proposed
 
 F64 = torch.float64
@@ -48,7 +48,7 @@ def _kalman(z):
 
 
 def _run_sir(z, num, seed, proposal):
-    inf = SIRInference(selection="systematic", ess_threshold=0.5)
+    inf = SIRInference(selection=SystematicResampler(), ess_threshold=0.5)
     g = torch.Generator().manual_seed(seed)
     parts, lw, logz, out = None, None, 0.0, []
     for zt in z:

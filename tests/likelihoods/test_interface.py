@@ -155,24 +155,6 @@ def test_weighted_sum_errors():
     for bad in (-1.0, float("nan"), float("inf"), "2"):
         with pytest.raises(ValueError, match="weights.a"):
             WeightedSum({"a": ElbowTerm()}, {"a": bad})
-    with pytest.raises(ValueError, match="start > 0"):
-        WeightedSum({"a": ElbowTerm()}, {"a": 0.0}, learn_weights=True)
-
-
-def test_learnable_weights_receive_gradients(sk):
-    lik = WeightedSum({"a": ElbowTerm(0.5), "b": ElbowTerm(-0.5)}, {"a": 2.0, "b": 1.0},
-                      learn_weights=True)
-    assert lik.weights == pytest.approx({"a": 2.0, "b": 1.0})
-    th = sk.zero_pose((3,))
-    th[:, sk.dof_index("l_elbow_flex")] = torch.tensor([0.0, 0.5, 1.0])
-    v = lik.energy(Poses(th, sk), lik.prepare(Frame(index=0, time=0.0)))
-    v.sum().backward()
-    grads = {k: p.grad for k, p in lik.log_weights.items()}
-    # d/dlog w of w * V = w * V
-    elbow = th[:, sk.dof_index("l_elbow_flex")]
-    assert grads["a"].item() == pytest.approx(2.0 * ((elbow - 0.5) ** 2).sum().item())
-    assert grads["b"].item() == pytest.approx(((elbow + 0.5) ** 2).sum().item())
-    assert sorted(n for n, _ in lik.named_parameters()) == ["log_weights.a", "log_weights.b"]
 
 
 def test_log_likelihood_is_minus_energy(sk):

@@ -5,7 +5,6 @@ estimators, the pose predictor and the :class:`Tracker` loop.
 """
 
 from torchmocap.filters.annealed import (
-    AnnealedParticleOptimiser,
     AnnealingResult,
     CovarianceDiffusion,
     GeometricDiffusion,
@@ -21,9 +20,9 @@ from torchmocap.filters.annealing import (
     GeometricSchedule,
     PolynomialSchedule,
     annealing_log_weights,
+    as_schedule,
     ess_fraction_at_beta,
     ess_target_beta,
-    get_schedule,
 )
 from torchmocap.filters.estimators import (
     BestParticleEstimator,
@@ -47,7 +46,7 @@ from torchmocap.filters.kalman_smoothing import (
     fit_cv_noise,
     unwrap_angles,
 )
-from torchmocap.filters.local import LocalOptimiser, LocalResult, minimise_local
+from torchmocap.filters.local import LocalResult, minimise_local
 from torchmocap.filters.mixture import (
     MixtureInference,
     bhattacharyya_reweight,
@@ -57,28 +56,24 @@ from torchmocap.filters.mixture import (
     levenberg_marquardt,
 )
 from torchmocap.filters.prediction import (
-    AutoregressivePredictor,
     PosePredictor,
     RotationGroup,
     angles_from_matrix,
-    fit_ar3,
-    fit_rotation_increments,
     predict_ar3,
     skeleton_rotation_groups,
 )
 from torchmocap.filters.resampling import (
-    RESAMPLERS,
     KeepRedrawResampler,
     MultinomialResampler,
     Resampler,
     ResidualResampler,
     StratifiedResampler,
     SystematicResampler,
+    as_resampler,
     counts_to_indices,
     effective_sample_size,
     ess_fraction,
     gather_particles,
-    get_resampler,
     keep_redraw_resample,
     multinomial_resample,
     normalize_log_weights,
@@ -95,9 +90,7 @@ from torchmocap.filters.tracker import CheckpointError, MissingObservationError,
 
 __all__ = [
     "AnnealedInference",
-    "AnnealedParticleOptimiser",
     "AnnealingResult",
-    "AutoregressivePredictor",
     "BestParticleEstimator",
     "BetaSolution",
     "CheckpointError",
@@ -111,7 +104,6 @@ __all__ = [
     "InferenceResult",
     "KeepRedrawResampler",
     "LocalInference",
-    "LocalOptimiser",
     "LocalResult",
     "ManifoldMeanEstimator",
     "TemporalMapEstimator",
@@ -120,7 +112,6 @@ __all__ = [
     "MultinomialResampler",
     "PolynomialSchedule",
     "PosePredictor",
-    "RESAMPLERS",
     "Resampler",
     "ResidualResampler",
     "RotationGroup",
@@ -145,6 +136,8 @@ __all__ = [
     "WeightedMeanEstimator",
     "angles_from_matrix",
     "anneal",
+    "as_resampler",
+    "as_schedule",
     "annealing_log_weights",
     "bhattacharyya_reweight",
     "bound_particles",
@@ -156,12 +149,8 @@ __all__ = [
     "ess_fraction",
     "ess_fraction_at_beta",
     "ess_target_beta",
-    "fit_ar3",
-    "fit_rotation_increments",
     "gather_particles",
     "gauss_newton_function",
-    "get_resampler",
-    "get_schedule",
     "keep_redraw_resample",
     "levenberg_marquardt",
     "minimise_local",

@@ -40,16 +40,19 @@ import torch
 from torchmocap.filters.annealing import (
     AnnealingSchedule,
     annealing_log_weights,
+    as_schedule,
     check_energies,
-    get_schedule,
 )
-from torchmocap.filters.resampling import effective_sample_size, get_resampler
+from torchmocap.filters.resampling import (
+    MultinomialResampler,
+    as_resampler,
+    effective_sample_size,
+)
 from torchmocap.proposals.bounds import as_bound as _as_bound
 from torchmocap.proposals.bounds import bound_particles
 
 __all__ = [
     "AnnealingResult",
-    "AnnealedParticleOptimiser",
     "GeometricDiffusion",
     "CovarianceDiffusion",
     "Diffusion",
@@ -342,8 +345,8 @@ def anneal(
     particles: torch.Tensor,
     *,
     layers: int = 15,
-    schedule: str | AnnealingSchedule | None = None,
-    selection: str | Callable[..., torch.Tensor] = "multinomial",
+    schedule: AnnealingSchedule | None = None,
+    selection: Callable[..., torch.Tensor] | None = None,
     diffusion: Diffusion | None = None,
     lower: torch.Tensor | float | None = None,
     upper: torch.Tensor | float | None = None,
@@ -362,10 +365,10 @@ def anneal(
         particles: initial set ``(P, D)`` (e.g. predicted poses plus noise); projected onto the
             bounds before the first evaluation. ``P`` is kept for every layer.
         layers: number ``K ≥ 1`` of layers (energy evaluations); ``K − 1`` select+diffuse steps.
-        schedule: ``"ess"`` (default, ESS fraction 0.5), ``"polynomial"``, ``"geometric"`` or a
-            callable ``(layer, energies (P,)) -> β``.
-        selection: a resampler name (``multinomial``, ``systematic``, ``stratified``,
-            ``residual``, ``keep_redraw``/``gall``) or a callable ``(log_w, generator) -> idx``.
+        schedule: a schedule object ``(layer, energies (P,)) -> β``; default
+            :class:`~torchmocap.filters.ESSSchedule` (ESS fraction 0.5).
+        selection: a resampler ``(log_w, generator) -> idx``; default
+            :class:`~torchmocap.filters.MultinomialResampler`.
         diffusion: ``(particles, step, generator) -> particles``; default
             :func:`default_diffusion` (diagonal particle covariance, cooling 10× over the run).
         lower, upper: box bounds, scalar or ``(D,)`` (e.g. ``skeleton.lower``); ±inf allowed.
@@ -392,8 +395,8 @@ def anneal(
         raise ValueError(f"layers: expected an int >= 1, got {layers!r}")
     if not callable(energy):
         raise TypeError(f"energy: expected a callable, got {type(energy).__name__}")
-    sched = get_schedule(schedule)
-    select = get_resampler(selection, "selection")
+    sched = as_schedule(schedule)
+    select = as_resampler(selection, "selection", MultinomialResampler)
     diffuse = diffusion if diffusion is not None else default_diffusion(layers)
     mean = mean_fn if mean_fn is not None else weighted_mean
     lo = _as_bound(lower, particles, "lower", -math.inf)
@@ -455,63 +458,3 @@ def anneal(
         mean_energy=mean_e,
         min_energy=min_e,
     )
-
-
-class AnnealedParticleOptimiser:
-    """Thin holder of :func:`anneal`'s settings: ``opt(energy, particles, generator)``.
-
-    Example:
-        >>> opt = AnnealedParticleOptimiser(layers=5, selection="systematic")
-        >>> res = opt(lambda x: (x**2).sum(-1), torch.randn(50, 2), torch.Generator())
-        >>> res.ess.shape
-        torch.Size([5])
-    """
-
-    def __init__(
-        self,
-        layers: int = 15,
-        schedule: str | AnnealingSchedule | None = None,
-        selection: str | Callable[..., torch.Tensor] = "multinomial",
-        diffusion: Diffusion | None = None,
-        lower: torch.Tensor | float | None = None,
-        upper: torch.Tensor | float | None = None,
-        boundary: str = "clamp",
-        decode: Callable[[torch.Tensor], object] | None = None,
-        mean_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
-    ) -> None:
-        if not isinstance(layers, int) or layers < 1:
-            raise ValueError(f"layers: expected an int >= 1, got {layers!r}")
-        if boundary not in ("clamp", "reflect"):
-            raise ValueError(f"boundary: expected 'clamp' or 'reflect', got {boundary!r}")
-        self.layers = layers
-        self.schedule = get_schedule(schedule)
-        self.selection = get_resampler(selection, "selection")
-        self.diffusion = diffusion
-        self.lower = lower
-        self.upper = upper
-        self.boundary = boundary
-        self.decode = decode
-        self.mean_fn = mean_fn
-
-    def __call__(
-        self,
-        energy: Energy,
-        particles: torch.Tensor,
-        generator: torch.Generator | None = None,
-        callback: Callable[[int, torch.Tensor, torch.Tensor, torch.Tensor], None] | None = None,
-    ) -> AnnealingResult:
-        return anneal(
-            energy,
-            particles,
-            layers=self.layers,
-            schedule=self.schedule,
-            selection=self.selection,
-            diffusion=self.diffusion,
-            lower=self.lower,
-            upper=self.upper,
-            boundary=self.boundary,
-            decode=self.decode,
-            mean_fn=self.mean_fn,
-            generator=generator,
-            callback=callback,
-        )

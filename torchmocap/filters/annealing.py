@@ -37,7 +37,7 @@ __all__ = [
     "annealing_log_weights",
     "ess_fraction_at_beta",
     "ess_target_beta",
-    "get_schedule",
+    "as_schedule",
 ]
 
 
@@ -291,17 +291,16 @@ class ESSSchedule:
     Thin wrapper of :func:`ess_target_beta`; ignores the layer index.
     """
 
-    def __init__(self, alpha: float = 0.5, beta_max: float = 1e12) -> None:
+    def __init__(self, alpha: float = 0.5) -> None:
         if not (0.0 < float(alpha) <= 1.0):
             raise ValueError(f"alpha: expected a target ESS fraction in (0, 1], got {alpha}")
         self.alpha = float(alpha)
-        self.beta_max = float(beta_max)
 
     def __call__(self, layer: int, energies: torch.Tensor) -> torch.Tensor:
-        return ess_target_beta(energies, self.alpha, beta_max=self.beta_max).beta
+        return ess_target_beta(energies, self.alpha).beta
 
     def __repr__(self) -> str:
-        return f"ESSSchedule(alpha={self.alpha}, beta_max={self.beta_max})"
+        return f"ESSSchedule(alpha={self.alpha})"
 
 
 class PolynomialSchedule:
@@ -342,18 +341,12 @@ class GeometricSchedule:
         return f"GeometricSchedule(ratio={self.ratio}, beta0={self.beta0})"
 
 
-def get_schedule(schedule: str | AnnealingSchedule | None) -> AnnealingSchedule:
-    """Resolve ``None``/``"ess"`` (ESS α = 0.5), ``"polynomial"``, ``"geometric"`` or a callable."""
-    if schedule is None or schedule == "ess":
+def as_schedule(schedule: AnnealingSchedule | None) -> AnnealingSchedule:
+    """``schedule`` itself (a callable ``(layer, energies) -> β``), or :class:`ESSSchedule` with
+    α = 0.5 for ``None``. Schedules are objects: a config chooses one by its ``_target_``."""
+    if schedule is None:
         return ESSSchedule()
-    if schedule == "polynomial":
-        return PolynomialSchedule()
-    if schedule == "geometric":
-        return GeometricSchedule()
-    if isinstance(schedule, str):
-        raise ValueError(
-            f"schedule: unknown name {schedule!r}; expected 'ess', 'polynomial' or 'geometric'"
-        )
-    if callable(schedule):
-        return schedule
-    raise TypeError(f"schedule: expected a name or a callable, got {type(schedule).__name__}")
+    if isinstance(schedule, str) or not callable(schedule):
+        raise TypeError(f"schedule: expected a schedule object such as "
+                        f"torchmocap.filters.ESSSchedule(), got {schedule!r}")
+    return schedule

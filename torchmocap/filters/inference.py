@@ -38,9 +38,13 @@ import torch
 from torch import nn
 
 from torchmocap.filters.annealed import anneal
-from torchmocap.filters.annealing import get_schedule
+from torchmocap.filters.annealing import as_schedule
 from torchmocap.filters.local import check_method, minimise_local
-from torchmocap.filters.resampling import get_resampler
+from torchmocap.filters.resampling import (
+    MultinomialResampler,
+    SystematicResampler,
+    as_resampler,
+)
 from torchmocap.filters.sir import sir_step
 from torchmocap.filters.temporal_prior import TemporalPrior
 from torchmocap.geometry import wrap_angle
@@ -193,12 +197,9 @@ class AnnealedInference(Inference):
     Args:
         layers: ``K`` layers (energy evaluations of ``num`` particles).
         schedule: an annealing schedule object (default
-            :class:`~torchmocap.filters.annealing.ESSSchedule` with α = 0.5: β so that the ESS
-            fraction of the weights is α, as in every public implementation) or a name
-            (``"ess"``, ``"polynomial"``, ``"geometric"``).
-        selection: a resampler object (:mod:`torchmocap.filters.resampling`; default
-            multinomial) or a name (``multinomial``, ``systematic``, ``stratified``,
-            ``residual``, ``keep_redraw``).
+            :class:`~torchmocap.filters.ESSSchedule` with α = 0.5: β so that the ESS fraction
+            of the weights is α, as in every public implementation).
+        selection: a resampler object (default :class:`~torchmocap.filters.MultinomialResampler`).
         diffusion: :class:`SpreadDiffusion` (default) or :class:`ShrinkingDiffusion`.
         rounds: restarts; round ``r`` starts from the previous round's result with the
             proposal's spread scaled by ``round_scale^r``, and the lowest-energy result of all
@@ -244,7 +245,7 @@ class AnnealedInference(Inference):
     PROPAGATE = ("prediction", "particles")
     REFINE_FROM = ("estimate", "prediction", "last_estimate")
 
-    def __init__(self, layers: int = 15, schedule="ess", selection="multinomial",
+    def __init__(self, layers: int = 15, schedule=None, selection=None,
                  diffusion=None, rounds: int = 1, round_scale: float = 0.5,
                  propagate: str = "prediction", motion_scale: float = 0.0,
                  refine: Inference | None = None, prior_std_deg: float | None = None,
@@ -286,8 +287,8 @@ class AnnealedInference(Inference):
                 raise ValueError(f"{name}: expected an int >= 1, got {v!r}")
         self.layers, self.rounds = layers, rounds
         self.round_scale = _check_fraction("round_scale", round_scale)
-        self.schedule = get_schedule(schedule)
-        self.selection = get_resampler(selection, "selection")
+        self.schedule = as_schedule(schedule)
+        self.selection = as_resampler(selection, "selection", MultinomialResampler)
         self.diffusion = SpreadDiffusion() if diffusion is None else diffusion
         if not callable(self.diffusion):
             raise TypeError(f"diffusion: expected a diffusion rule, got "
@@ -493,7 +494,7 @@ class SIRInference(Inference):
     ``r_t`` is constant, which this is.
 
     Args:
-        selection: resampler object or name (default systematic).
+        selection: resampler object (default :class:`~torchmocap.filters.SystematicResampler`).
         ess_threshold: resample when ESS/P of the incoming weights is below this.
         temperature: the weights use ``−V / temperature`` (1 = the likelihood as it is).
 
@@ -502,10 +503,10 @@ class SIRInference(Inference):
     ``correction`` (whether ``r_t`` was used) and the proposal's statistics.
     """
 
-    def __init__(self, selection="systematic", ess_threshold: float = 1.0,
+    def __init__(self, selection=None, ess_threshold: float = 1.0,
                  temperature: float = 1.0) -> None:
         super().__init__()
-        self.selection = get_resampler(selection, "selection")
+        self.selection = as_resampler(selection, "selection", SystematicResampler)
         self.ess_threshold = _check_fraction("ess_threshold", ess_threshold, lo_open=False)
         if not (isinstance(temperature, (int, float)) and math.isfinite(temperature)
                 and temperature > 0):

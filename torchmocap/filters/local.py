@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["LocalResult", "LocalOptimiser", "minimise_local"]
+__all__ = ["LocalResult", "minimise_local"]
 
 Energy = Callable[[torch.Tensor], torch.Tensor]
 
@@ -309,21 +309,3 @@ def minimise_local(
         raise ValueError("lower: must not exceed upper")
     fn = energy if decode is None else (lambda x: energy(decode(x)))
     return OPTIMISERS[method](fn, x0, lo, hi, iterations, history, lr, tol)
-
-
-class LocalOptimiser:
-    """Thin holder of :func:`minimise_local`'s settings: ``opt(energy, x0) -> LocalResult``."""
-
-    def __init__(self, method: str = "lbfgs", iterations: int = 100, **kwargs) -> None:
-        check_method(method)
-        self.method = method
-        self.iterations = iterations
-        self.kwargs = kwargs
-
-    def __call__(self, energy: Energy, x0: torch.Tensor) -> LocalResult:
-        return minimise_local(
-            energy, x0, method=self.method, iterations=self.iterations, **self.kwargs
-        )
-
-    def __repr__(self) -> str:
-        return f"LocalOptimiser(method={self.method!r}, iterations={self.iterations})"

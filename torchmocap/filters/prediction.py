@@ -8,9 +8,7 @@ used, ``x1 = history[..., -1, :]`` (t−1, most recent), ``x2`` (t−2), ``x3`` 
 - ``constant_acceleration``: ``x̂ = 3x1 − 3x2 + x3 = x1 + Δ1 + (Δ1 − Δ2)`` (exact on quadratics,
   but it amplifies i.i.d. noise by √19 ≈ 4.4);
 - ``damped``: ``x̂ = x1 + λ1 Δ1 + λ2 (Δ1 − Δ2)`` (λ = (1, 1) is constant acceleration, (1, 0)
-  constant velocity, (0, 0) constant position);
-- ``least_squares``: ``x̂ = a1 x1 + a2 x2 + a3 x3`` with per-DoF coefficients ``(D, 3)`` fitted on
-  training trajectories by :func:`fit_ar3` (ridge towards "stay where you are", (1, 0, 0)).
+  constant velocity, (0, 0) constant position).
 
 **Rotation groups.** Angles must not be extrapolated as numbers: a rotation vector that wraps
 from +π to −π, or Euler-type angles through arbitrary axes, break linear extrapolation. A
@@ -41,16 +39,14 @@ from torchmocap.geometry import axis_angle_rotation, so3_exp, so3_log
 __all__ = [
     "RotationGroup",
     "skeleton_rotation_groups",
-    "AutoregressivePredictor",
+    "PosePredictor",
     "predict_ar3",
-    "fit_ar3",
-    "fit_rotation_increments",
     "angles_from_matrix",
     "euler_matrix",
     "MODES",
 ]
 
-MODES = ("constant_acceleration", "damped", "least_squares")
+MODES = ("constant_acceleration", "damped")
 
 ToMatrix = Callable[[torch.Tensor], torch.Tensor]
 FromMatrix = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
@@ -278,9 +274,7 @@ def predict_ar3(
     mode: str = "constant_acceleration",
     *,
     damping: tuple[float, float] = (0.8, 0.3),
-    coefficients: torch.Tensor | None = None,
     rotation_groups: Sequence[RotationGroup | Sequence[int]] = (),
-    rotation_coefficients: torch.Tensor | None = None,
     lower: torch.Tensor | float | None = None,
     upper: torch.Tensor | float | None = None,
 ) -> torch.Tensor:
@@ -288,16 +282,10 @@ def predict_ar3(
 
     Args:
         history: chronological poses, ``T ≥ 3`` (the last row is the most recent).
-        mode: ``"constant_acceleration"``, ``"damped"`` or ``"least_squares"``.
+        mode: ``"constant_acceleration"`` or ``"damped"``.
         damping: ``(λ1, λ2)`` of the damped mode (defaults are a heuristic, not the paper's).
-        coefficients: ``(D, 3)`` or ``(3,)`` AR coefficients ``(a1, a2, a3)`` on ``(x1, x2, x3)``
-            for ``least_squares`` (from :func:`fit_ar3`).
         rotation_groups: coordinates composed on SO(3) (see :class:`RotationGroup`; a plain
             triple of indices means a rotation vector).
-        rotation_coefficients: ``(G, 2)`` increment coefficients ``(u, v)``,
-            ``δ̂ = u δ1 + v δ2``, per group for ``least_squares`` (from
-            :func:`fit_rotation_increments`); by default derived from ``coefficients`` as
-            ``u = a1 − 1 − a3, v = −a3`` averaged over the group's three DoFs.
         lower, upper: limits, scalar or ``(D,)``; the prediction is clamped to them.
     Returns:
         ``(..., D)`` predicted pose.
@@ -310,39 +298,11 @@ def predict_ar3(
     _check_groups(groups, d)
     x3, x2, x1 = history[..., -3:, :].unbind(-2)
 
-    if mode == "least_squares":
-        if coefficients is None:
-            raise ValueError("coefficients: required for mode 'least_squares' (see fit_ar3)")
-        a = torch.as_tensor(coefficients, dtype=history.dtype, device=history.device)
-        if a.shape == (3,):
-            a = a.expand(d, 3)
-        if a.shape != (d, 3):
-            raise ValueError(f"coefficients: expected shape ({d}, 3) or (3,), got {tuple(a.shape)}")
-        pred = a[:, 0] * x1 + a[:, 1] * x2 + a[:, 2] * x3
-    else:
-        u, v = _mode_uv(mode, damping)
-        pred = x1 + u * (x1 - x2) + v * (x2 - x3)
+    u, v = _mode_uv(mode, damping)
+    pred = x1 + u * (x1 - x2) + v * (x2 - x3)
 
     if groups:
-        if mode == "least_squares":
-            if rotation_coefficients is None:
-                uv = []
-                for g in groups:
-                    ag = a[list(g.indices)].mean(0)
-                    uv.append(torch.stack([ag[0] - 1 - ag[2], -ag[2]]))
-                rc = torch.stack(uv)
-            else:
-                rc = torch.as_tensor(
-                    rotation_coefficients, dtype=history.dtype, device=history.device
-                )
-                if rc.shape != (len(groups), 2):
-                    raise ValueError(
-                        f"rotation_coefficients: expected shape ({len(groups)}, 2), "
-                        f"got {tuple(rc.shape)}"
-                    )
-        else:
-            u, v = _mode_uv(mode, damping)
-            rc = torch.tensor([[u, v]] * len(groups), dtype=history.dtype, device=history.device)
+        rc = torch.tensor([[u, v]] * len(groups), dtype=history.dtype, device=history.device)
         pred = pred.clone()
         for gi, g in enumerate(groups):
             idx = list(g.indices)
@@ -353,178 +313,6 @@ def predict_ar3(
             Rh = R1 @ so3_exp(dh)
             pred[..., idx] = g.values(Rh, x1[..., idx]).to(pred.dtype)
     return _bound(pred, lower, upper)
-
-
-def _as_trajectories(trajectories) -> list[torch.Tensor]:
-    if isinstance(trajectories, torch.Tensor):
-        if trajectories.dim() == 2:
-            trajs = [trajectories]
-        elif trajectories.dim() == 3:
-            trajs = list(trajectories.unbind(0))
-        else:
-            raise ValueError(
-                f"trajectories: expected (T, D), (B, T, D) or a list of (T, D), "
-                f"got shape {tuple(trajectories.shape)}"
-            )
-    else:
-        trajs = list(trajectories)
-    if not trajs:
-        raise ValueError("trajectories: expected at least one trajectory")
-    d = trajs[0].shape[-1]
-    for t in trajs:
-        if not isinstance(t, torch.Tensor) or t.dim() != 2 or t.shape[-1] != d:
-            raise ValueError("trajectories: every trajectory must be a (T, D) tensor, same D")
-        if not bool(torch.isfinite(t).all()):
-            raise ValueError("trajectories: expected finite values, found NaN or inf")
-    if sum(max(t.shape[0] - 3, 0) for t in trajs) < 3:
-        raise ValueError("trajectories: need at least 3 frames beyond the first 3 to fit AR(3)")
-    return trajs
-
-
-def fit_ar3(
-    trajectories: torch.Tensor | Sequence[torch.Tensor], ridge: float = 1e-3
-) -> torch.Tensor:
-    """Per-DoF AR(3) coefficients ``(D, 3)`` by ridge-regularised least squares.
-
-    For each DoF ``j`` minimises ``Σ_t (x_t − a1 x_{t−1} − a2 x_{t−2} − a3 x_{t−3})² +
-    λ ‖a − (1, 0, 0)‖²`` over all training frames; the ridge pulls towards the constant-position
-    model and is relative (``λ = ridge · tr(XᵀX) / 3`` per DoF), so it is unit-free.
-
-    Args:
-        trajectories: ``(T, D)``, ``(B, T, D)`` or a list of ``(T_b, D)`` pose sequences.
-        ridge: relative ridge strength ``≥ 0``.
-    Returns:
-        ``(D, 3)`` coefficients on ``(x_{t−1}, x_{t−2}, x_{t−3})`` (float64).
-    """
-    if not ridge >= 0:
-        raise ValueError(f"ridge: expected a non-negative number, got {ridge}")
-    trajs = _as_trajectories(trajectories)
-    xs, ys = [], []
-    for t in trajs:
-        t = t.to(torch.float64)
-        if t.shape[0] < 4:
-            continue
-        xs.append(torch.stack([t[2:-1], t[1:-2], t[:-3]], dim=-1))  # (T−3, D, 3)
-        ys.append(t[3:])
-    X = torch.cat(xs).transpose(0, 1)  # (D, N, 3)
-    y = torch.cat(ys).transpose(0, 1)  # (D, N)
-    XtX = X.transpose(-1, -2) @ X  # (D, 3, 3)
-    Xty = (X.transpose(-1, -2) @ y[..., None])[..., 0]
-    lam = ridge * XtX.diagonal(dim1=-2, dim2=-1).sum(-1) / 3 + 1e-300
-    prior = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64, device=X.device)
-    eye = torch.eye(3, dtype=torch.float64, device=X.device)
-    A = XtX + lam[:, None, None] * eye
-    b = Xty + lam[:, None] * prior
-    return torch.linalg.solve(A, b[..., None])[..., 0]
-
-
-def fit_rotation_increments(
-    trajectories: torch.Tensor | Sequence[torch.Tensor],
-    group: RotationGroup | Sequence[int],
-    ridge: float = 1e-3,
-) -> torch.Tensor:
-    """Increment coefficients ``(u, v)`` of one rotation group, ``δ̂_t = u δ_{t−1} + v δ_{t−2}``,
-    by ridge least squares over all frames (the three components stacked). The ridge pulls
-    towards ``(0, 0)`` (constant rotation), relative as in :func:`fit_ar3`.
-
-    Returns:
-        ``(2,)`` float64.
-    """
-    if not ridge >= 0:
-        raise ValueError(f"ridge: expected a non-negative number, got {ridge}")
-    g = group if isinstance(group, RotationGroup) else RotationGroup(tuple(group))
-    trajs = _as_trajectories(trajectories)
-    _check_groups([g], trajs[0].shape[-1])
-    feats, targets = [], []
-    for t in trajs:
-        if t.shape[0] < 4:
-            continue
-        R = g.matrix(t[:, list(g.indices)]).to(torch.float64)
-        dl = so3_log(R[:-1].transpose(-1, -2) @ R[1:])  # (T−1, 3): δ between consecutive
-        feats.append(torch.stack([dl[1:-1], dl[:-2]], dim=-1).reshape(-1, 2))
-        targets.append(dl[2:].reshape(-1))
-    X = torch.cat(feats)
-    y = torch.cat(targets)
-    XtX = X.T @ X
-    lam = ridge * XtX.trace() / 2 + 1e-300
-    return torch.linalg.solve(XtX + lam * torch.eye(2, dtype=X.dtype), X.T @ y)
-
-
-class AutoregressivePredictor:
-    """Thin holder of :func:`predict_ar3`'s settings: ``predictor(history (..., T, D))``.
-
-    Build a least-squares one with :meth:`fit`. Example:
-
-        >>> p = AutoregressivePredictor("damped", damping=(1.0, 0.0))
-        >>> p(torch.tensor([[0.0], [1.0], [2.0]]))
-        tensor([3.])
-    """
-
-    def __init__(
-        self,
-        mode: str = "constant_acceleration",
-        *,
-        damping: tuple[float, float] = (0.8, 0.3),
-        coefficients: torch.Tensor | None = None,
-        rotation_groups: Sequence[RotationGroup | Sequence[int]] = (),
-        rotation_coefficients: torch.Tensor | None = None,
-        lower: torch.Tensor | float | None = None,
-        upper: torch.Tensor | float | None = None,
-    ) -> None:
-        if mode not in MODES:
-            raise ValueError(f"mode: expected one of {MODES}, got {mode!r}")
-        if mode == "least_squares" and coefficients is None:
-            raise ValueError("coefficients: required for mode 'least_squares' (see fit)")
-        self.mode = mode
-        self.damping = (float(damping[0]), float(damping[1]))
-        self.coefficients = coefficients
-        self.rotation_groups = _as_groups(rotation_groups)
-        self.rotation_coefficients = rotation_coefficients
-        self.lower = lower
-        self.upper = upper
-
-    @classmethod
-    def fit(
-        cls,
-        trajectories: torch.Tensor | Sequence[torch.Tensor],
-        *,
-        ridge: float = 1e-3,
-        rotation_groups: Sequence[RotationGroup | Sequence[int]] = (),
-        lower: torch.Tensor | float | None = None,
-        upper: torch.Tensor | float | None = None,
-    ) -> AutoregressivePredictor:
-        """Least-squares predictor fitted on training trajectories (e.g. mocap clips)."""
-        groups = _as_groups(rotation_groups)
-        coef = fit_ar3(trajectories, ridge)
-        rc = None
-        if groups:
-            rc = torch.stack([fit_rotation_increments(trajectories, g, ridge) for g in groups])
-        return cls(
-            "least_squares",
-            coefficients=coef,
-            rotation_groups=groups,
-            rotation_coefficients=rc,
-            lower=lower,
-            upper=upper,
-        )
-
-    def __call__(self, history: torch.Tensor) -> torch.Tensor:
-        return predict_ar3(
-            history,
-            self.mode,
-            damping=self.damping,
-            coefficients=self.coefficients,
-            rotation_groups=self.rotation_groups,
-            rotation_coefficients=self.rotation_coefficients,
-            lower=self.lower,
-            upper=self.upper,
-        )
-
-    def __repr__(self) -> str:
-        return (
-            f"AutoregressivePredictor(mode={self.mode!r}, "
-            f"rotation_groups={[g.indices for g in self.rotation_groups]})"
-        )
 
 
 class PosePredictor(torch.nn.Module):
@@ -559,9 +347,8 @@ class PosePredictor(torch.nn.Module):
         root = skeleton.joint_names[0]
         groups = (skeleton_rotation_groups(skeleton, [root])
                   if len(skeleton.joint_axes[0]) == 3 else [])
-        self._ar = AutoregressivePredictor(
-            "constant_acceleration" if mode == "constant_acceleration" else "damped",
-            damping=self.damping, rotation_groups=groups)
+        self._ar_mode = "constant_acceleration" if mode == "constant_acceleration" else "damped"
+        self._groups = _as_groups(groups)
 
     def forward(self, history: torch.Tensor) -> torch.Tensor:
         if history.dim() != 2 or history.shape[-1] != self.lower.shape[0]:
@@ -569,7 +356,8 @@ class PosePredictor(torch.nn.Module):
                              f"{tuple(history.shape)}")
         lo, hi = self.lower.to(history.dtype), self.upper.to(history.dtype)
         if history.shape[0] >= 3 and self.mode != "constant_position":
-            pred = self._ar(history[-3:].double()).to(history.dtype)
+            pred = predict_ar3(history[-3:].double(), self._ar_mode, damping=self.damping,
+                               rotation_groups=self._groups).to(history.dtype)
         elif history.shape[0] == 2 and self.mode != "constant_position":
             pred = history[-1] + 0.5 * (history[-1] - history[-2])
         else:

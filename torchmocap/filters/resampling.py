@@ -36,7 +36,6 @@ __all__ = [
     "SystematicResampler",
     "StratifiedResampler",
     "ResidualResampler",
-    "RESAMPLERS",
     "check_log_weights",
     "normalize_log_weights",
     "effective_sample_size",
@@ -50,7 +49,7 @@ __all__ = [
     "offspring_counts",
     "counts_to_indices",
     "gather_particles",
-    "get_resampler",
+    "as_resampler",
 ]
 
 
@@ -376,30 +375,14 @@ class KeepRedrawResampler(Resampler):
     fn = staticmethod(keep_redraw_resample)
 
 
-RESAMPLERS: dict[str, type[Resampler]] = {
-    "multinomial": MultinomialResampler,
-    "systematic": SystematicResampler,
-    "stratified": StratifiedResampler,
-    "residual": ResidualResampler,
-    "keep_redraw": KeepRedrawResampler,
-}
-
-
-def get_resampler(
-    name: str | Resampler | Callable[..., torch.Tensor],
-    arg: str = "resampler",
-) -> Callable[..., torch.Tensor]:
-    """Resolve a resampler by name (``multinomial``, ``systematic``, ``stratified``, ``residual``,
-    ``keep_redraw``; ``gall`` is an alias of ``keep_redraw``) or return a callable unchanged."""
-    if name == "gall":
-        name = "keep_redraw"
-    if isinstance(name, str):
-        try:
-            return RESAMPLERS[name]()
-        except KeyError:
-            raise ValueError(
-                f"{arg}: unknown resampler {name!r}; expected one of {sorted(RESAMPLERS)}"
-            ) from None
-    if callable(name):
-        return name
-    raise TypeError(f"{arg}: expected a resampler name or a callable, got {type(name).__name__}")
+def as_resampler(resampler: Resampler | Callable[..., torch.Tensor] | None,
+                 arg: str = "resampler", default: type[Resampler] = SystematicResampler
+                 ) -> Callable[..., torch.Tensor]:
+    """``resampler`` itself (a callable ``(log_w, generator) -> indices``), or ``default()`` for
+    ``None``. Resamplers are objects: a config chooses one by its ``_target_``."""
+    if resampler is None:
+        return default()
+    if isinstance(resampler, str) or not callable(resampler):
+        raise TypeError(f"{arg}: expected a resampler object such as "
+                        f"torchmocap.filters.SystematicResampler(), got {resampler!r}")
+    return resampler

@@ -33,9 +33,9 @@ from dataclasses import dataclass
 import torch
 
 from torchmocap.filters.resampling import (
+    as_resampler,
     check_log_weights,
     effective_sample_size,
-    get_resampler,
     normalize_log_weights,
 )
 
@@ -86,7 +86,7 @@ def sir_step(
     log_likelihood: Callable[[torch.Tensor], torch.Tensor],
     *,
     generator: torch.Generator | None = None,
-    resampler: str | Callable[..., torch.Tensor] = "systematic",
+    resampler: Callable[..., torch.Tensor] | None = None,
     ess_threshold: float = 0.5,
 ) -> SIRStep:
     """Resample (adaptively), propose, weight.
@@ -98,7 +98,8 @@ def sir_step(
             factor ``log p(x_t|x_{t−1}) − log q(x_t|z_t, x_{t−1})`` per particle.
         log_likelihood: ``(P, D) -> (P,)`` ``log p(z_t | x_t)``; ``−inf`` allowed.
         generator: the only source of randomness.
-        resampler: resampler name or callable ``(log_w, generator) -> indices``.
+        resampler: a resampler ``(log_w, generator) -> indices`` (default
+            :class:`~torchmocap.filters.SystematicResampler`).
         ess_threshold: resample when ESS/P of the input weights is below this.
     Returns:
         :class:`SIRStep`.
@@ -111,7 +112,7 @@ def sir_step(
         raise ValueError(f"log_weights: expected shape ({p},), got {tuple(log_weights.shape)}")
     if not 0.0 <= ess_threshold <= 1.0:
         raise ValueError(f"ess_threshold: expected a fraction in [0, 1], got {ess_threshold}")
-    select = get_resampler(resampler)
+    select = as_resampler(resampler)
     lw = normalize_log_weights(log_weights.to(torch.float64))
     resampled = bool(effective_sample_size(lw) < ess_threshold * p) or ess_threshold == 1.0
     if resampled:
@@ -166,7 +167,7 @@ def sir_filter(
     *,
     log_weights: torch.Tensor | None = None,
     generator: torch.Generator | None = None,
-    resampler: str | Callable[..., torch.Tensor] = "systematic",
+    resampler: Callable[..., torch.Tensor] | None = None,
     ess_threshold: float = 0.5,
 ) -> SIRResult:
     """Run ``steps`` SIR steps; ``propose(t, particles, generator)``,

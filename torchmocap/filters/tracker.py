@@ -97,7 +97,6 @@ class Tracker(nn.Module):
         name: label (progress bar, metrics), e.g. the preset name.
         refine_first_frame: run the inference on frame 0 too, from the given initial pose (or
             a set of candidate poses ``(K, D)``) — for fits of a real frame from a rough start.
-        clamp_estimate: clamp each estimate into the joint limits.
         body_fit: optional callable ``(theta0, frame0) -> info`` run at :meth:`init` after the
             first pose is known, e.g. :class:`~torchmocap.filters.body_fit.SilhouetteBodyFit`
             (fits the capsule radii — and axis offsets — to the first frame; its body is saved in
@@ -117,7 +116,7 @@ class Tracker(nn.Module):
     def __init__(self, skeleton, predictor, proposal: Proposal, likelihood: Likelihood,
                  inference: Inference, estimator: Estimator, num_particles: int = 200,
                  manifold=None, seed: int = 0, name: str = "tracker",
-                 refine_first_frame: bool = False, clamp_estimate: bool = True,
+                 refine_first_frame: bool = False,
                  body_fit=None, refit_passes: int = 0, refit_scale: float = 0.25,
                  smoother: Smoother | None = None) -> None:
         super().__init__()
@@ -147,7 +146,6 @@ class Tracker(nn.Module):
         self.seed = seed
         self.name = str(name)
         self.refine_first_frame = bool(refine_first_frame)
-        self.clamp_estimate = bool(clamp_estimate)
         if body_fit is not None and not callable(body_fit):
             raise TypeError(f"body_fit: expected a callable, got {type(body_fit).__name__}")
         self.body_fit = body_fit
@@ -249,9 +247,9 @@ class Tracker(nn.Module):
         res = self.inference(energy, self.proposal, self.estimator, context,
                              self.num_particles, generator)
         est = res.estimate.detach().to(self.dtype)
-        if self.clamp_estimate:
-            est = torch.maximum(torch.minimum(est, self.skeleton.upper.to(est.dtype)),
-                                self.skeleton.lower.to(est.dtype))
+        # every estimate within the joint limits
+        est = torch.maximum(torch.minimum(est, self.skeleton.upper.to(est.dtype)),
+                            self.skeleton.lower.to(est.dtype))
         with torch.no_grad():
             terms = {k: float(v[0]) for k, v in energy.terms(est[None]).items()}
         missing = energy.missing_evidence()

@@ -138,12 +138,10 @@ class WeightedSum(Likelihood):
         terms: ``{name: Likelihood}``.
         weights: ``{name: weight}``; missing names weigh 1. A weight of 0 switches a term off
             (not evaluated, its modalities not required). Weights must be finite and ``>= 0``.
-        learn_weights: make the weights ``nn.Parameter``s (stored as log-weights, so they stay
-            positive) for training.
     """
 
-    def __init__(self, terms: Mapping[str, Likelihood], weights: Mapping[str, float] | None = None,
-                 learn_weights: bool = False) -> None:
+    def __init__(self, terms: Mapping[str, Likelihood], weights: Mapping[str, float] | None = None
+                 ) -> None:
         super().__init__()
         if not isinstance(terms, Mapping) or not terms:
             raise ValueError("terms: expected a non-empty mapping {name: Likelihood}")
@@ -163,28 +161,19 @@ class WeightedSum(Likelihood):
                 raise ValueError(f"weights.{name}: expected a finite number >= 0, got {v!r}")
             w[name] = float(v)
         self.terms = nn.ModuleDict(dict(terms))
-        self.learn_weights = bool(learn_weights)
-        if self.learn_weights:
-            if any(v == 0 for v in w.values()):
-                raise ValueError("weights: learnable weights must start > 0")
-            self.log_weights = nn.ParameterDict(
-                {k: nn.Parameter(torch.tensor(math.log(v))) for k, v in w.items()})
-        else:
-            self._weights = w
+        self._weights = w
 
     @property
     def weights(self) -> dict[str, float]:
-        """Current weight of every term."""
-        if self.learn_weights:
-            return {k: float(p.detach().exp()) for k, p in self.log_weights.items()}
+        """The weight of every term."""
         return dict(self._weights)
 
-    def _weight(self, name: str):
-        return self.log_weights[name].exp() if self.learn_weights else self._weights[name]
+    def _weight(self, name: str) -> float:
+        return self._weights[name]
 
     def active_terms(self) -> list[str]:
         """Names of the terms with a non-zero weight."""
-        return [k for k in self.terms if self.learn_weights or self._weights[k] != 0]
+        return [k for k in self.terms if self._weights[k] != 0]
 
     @property
     def requires(self) -> tuple[str, ...]:  # type: ignore[override]
