@@ -545,7 +545,7 @@ class MixtureInference(Inference):
             return None
         return TemporalPrior.from_stds(like.shape[-1], self._translation_dofs,
                                        self.prior_std_deg, self.prior_translation_std,
-                                       dtype=like.dtype, device=like.device)
+                                       dtype=like.dtype, device=like.device, wrap=False)
 
     def _derivs_fn(self, energy, anchors: torch.Tensor | None, prior: TemporalPrior | None):
         """``x -> (V_total, grad, H, V_likelihood)`` for rows aligned with ``anchors``."""

@@ -3,7 +3,7 @@ annealer's weights, the mixture tracker's optimised energy and mode weights, the
 estimator, the Viterbi smoother's transitions).
 
 ``R(θ; m) = ½ Σ_d ((θ_d − m_d) / σ_d)²`` with ``σ_d`` one angle for every rotation DoF and one
-length for the root translation; rotation differences are wrapped to ``(−π, π]``
+length for the root translation; rotation differences are wrapped to ``[−π, π)``
 (:func:`~torchmocap.geometry.wrap_angle`). In annealing it multiplies every layer's weights by
 ``exp(−R)`` — untempered, so layer ``k`` targets ``exp(−β_k V(θ)) p(θ | m)``: the search
 leaves the prediction's basin only where the evidence pays for it, the locality a descent from
@@ -50,7 +50,8 @@ class TemporalPrior(nn.Module):
 
     Args:
         precision: ``(D,)`` ``1 / σ²`` (:func:`temporal_prior_precision`).
-        rotation: ``(D,)`` bool, the coordinates whose differences are wrapped to ``(−π, π]``.
+        rotation: ``(D,)`` bool, the coordinates whose differences are wrapped to ``[−π, π)``
+            (the angles; none when the poses compared are known to be close).
 
     Buffers follow ``.to(device)``; the energy is computed in the dtype of ``x``.
     """
@@ -76,12 +77,16 @@ class TemporalPrior(nn.Module):
     @classmethod
     def from_stds(cls, num_dofs: int, translation_dofs: Sequence[int], std_deg: float,
                   translation_std: float, dtype: torch.dtype = torch.float64,
-                  device: torch.device | str | None = None) -> TemporalPrior:
+                  device: torch.device | str | None = None, wrap: bool = True
+                  ) -> TemporalPrior:
         """The prior of ``num_dofs`` coordinates, ``translation_dofs`` in metres (std
-        ``translation_std``), the others angles (std ``std_deg`` degrees)."""
+        ``translation_std``), the others angles (std ``std_deg`` degrees). ``wrap=False``
+        compares angles as plain numbers (for poses known to be within ``π`` of the mean, where
+        wrapping only costs the last bits: the mixture tracker's local optima about the prior
+        mode they descend from)."""
         prec = temporal_prior_precision(num_dofs, translation_dofs, std_deg, translation_std,
                                         dtype=dtype, device=device)
-        rot = torch.ones(num_dofs, dtype=torch.bool, device=device)
+        rot = torch.full((num_dofs,), bool(wrap), dtype=torch.bool, device=device)
         rot[list(translation_dofs)] = False
         return cls(prec, rot)
 
@@ -90,7 +95,7 @@ class TemporalPrior(nn.Module):
         return int(self.precision.shape[0])
 
     def difference(self, x: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
-        """``x − mean`` ``(..., D)`` with rotation differences wrapped to ``(−π, π]``."""
+        """``x − mean`` ``(..., D)`` with rotation differences wrapped to ``[−π, π)``."""
         d = x - mean.to(x)
         return torch.where(self.rotation.to(x.device), wrap_angle(d), d)
 
