@@ -227,7 +227,7 @@ def build_tracker(config, runtime: Runtime, seed: int = 0):
     :func:`tracker_config`) for the given runtime dependencies."""
     import numbers
 
-    from torchmocap.filters.tracker import Tracker
+    from torchmocap.filters.tracking.tracker import Tracker
 
     if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
         # int() would silently run 1.5 as seed 1

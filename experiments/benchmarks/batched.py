@@ -10,7 +10,7 @@ Run (on an otherwise idle machine):
 Tracker ``p`` (200 particles x 15 layers by default) on the bundled CMU walk, ``studio``
 scenario (4 views at 320x240 + IMUs), one synthesised sequence tracked with seeds 0..B-1:
 
-1. **in process, tracking only** — :func:`torchmocap.filters.batched.track_seeds` (the
+1. **in process, tracking only** — :func:`torchmocap.filters.track_seeds` (the
    particles of all B seeds evaluated in one energy call per layer) vs B ``tracker.run`` calls
    one after the other; sequence-frames per second = B x tracked frames / seconds. Each is
    warmed up once.
@@ -42,7 +42,7 @@ EXE = str(Path(sys.executable).parent / "torchmocap-track")
 def in_process(Bs, args) -> list[str]:
     from torchmocap.assembly import Runtime, build_tracker, tracker_config
     from torchmocap.data.loaders import synthesized_sequence
-    from torchmocap.filters.batched import track_seeds
+    from torchmocap.filters.tracking.batched import track_seeds
 
     size = [int(v) for v in args.image.split("x")]
     seq = synthesized_sequence({"frames": args.frames + 1}, "studio", {"image_size": size},

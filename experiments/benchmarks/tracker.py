@@ -90,7 +90,7 @@ def measure(frames: int, bodytrack: bool = True) -> list[str]:
     if bodytrack and root.is_dir():
         from torchmocap.body import CapsuleBody
         from torchmocap.data.bodytrack import load_bodytrack
-        from torchmocap.filters.annealed import anneal, default_diffusion
+        from torchmocap.filters.optim.anneal import anneal, default_diffusion
         from torchmocap.likelihoods.silhouette import prepare_silhouettes, silhouette_energy
         from torchmocap.skeleton import human31
 
@@ -137,7 +137,7 @@ def _worker(threads: int, frames: int, appearance: bool) -> None:
     if not (Path(torchmocap.__file__).parent / "assembly.py").is_file():
         # before the components redesign (e8e4446 and older)
         from torchmocap.body import CapsuleBody
-        from torchmocap.filters.tracker import Tracker, TrackerConfig, frame_observation
+        from torchmocap.filters.tracking.tracker import Tracker, TrackerConfig, frame_observation
 
         sk = seq.ground_truth.build_skeleton().float()
         sensors = {n: b for n, b, t in zip(seq.imu.names, seq.imu.bones,

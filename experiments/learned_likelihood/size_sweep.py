@@ -26,7 +26,7 @@ def main(files: list[str]) -> None:
     from omegaconf import OmegaConf
 
     from torchmocap.assembly import build_tracker, tracker_config
-    from torchmocap.filters.annealing import ess_target_beta
+    from torchmocap.filters.optim.schedules import ess_target_beta
     from torchmocap.learning import NegativeSettings, load_clip_set, pose_errors
     from torchmocap.likelihoods import LearnedFeatureLikelihood, Poses
     from torchmocap.likelihoods.learned import read_weights

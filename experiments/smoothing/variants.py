@@ -29,7 +29,7 @@ VARIANTS = ("filtered", "kalman (default)", "kalman, angles", "kalman, per DoF",
 def moving_average(theta: torch.Tensor, weights=(1, 2, 3, 2, 1)) -> torch.Tensor:
     """Centred weighted moving average of ``theta (T, D)`` (ends padded with the end values,
     rotation DoFs unwrapped first); frame 0 kept."""
-    from torchmocap.filters import unwrap_angles
+    from torchmocap.filters.smoothing import unwrap_angles
 
     k = torch.tensor(weights, dtype=theta.dtype)
     k = k / k.sum()

@@ -92,7 +92,7 @@ def test_step_state_on_cuda(sequences):
 
 
 def test_batched_seeds_on_cuda(sequences):
-    from torchmocap.filters.batched import track_seeds
+    from torchmocap.filters.tracking.batched import track_seeds
 
     seq = sequences("studio")
     tr = build_tracker(tracker_config("p", PRESETS[0][2]), Runtime.from_sequence(seq),
@@ -107,7 +107,7 @@ def test_batched_seeds_on_cuda(sequences):
 
 def test_ess_beta_on_the_gpu_equals_the_cpu_solver():
     """A GPU tensor takes the torch solver (CPU tensors the numpy one): same β."""
-    from torchmocap.filters.annealing import ess_target_beta
+    from torchmocap.filters.optim.schedules import ess_target_beta
 
     v = torch.randn(3, 200, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     gpu = ess_target_beta(v.to(CUDA), 0.5)

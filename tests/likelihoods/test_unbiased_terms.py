@@ -197,7 +197,7 @@ def test_distance_silhouette_settings_are_checked(mesh_scene):
 
 def test_descent_accepts_the_distance_term():
     from torchmocap.filters.inference import LocalInference
-    from torchmocap.filters.tracker import _check_descent_energy
+    from torchmocap.filters.tracking.tracker import _check_descent_energy
 
     sk = human31()
     body = CapsuleBody(sk)

@@ -484,7 +484,7 @@ class CapsuleBody(nn.Module):
             children) back by the radius, so the skin ends there (default True).
         axis_offsets: ``{bone_name: (x, y, z)}`` metres: the capsule moved off its bone by this
             vector in the parent joint's frame (default: every capsule on its bone). Fitted to a
-            subject by :class:`~torchmocap.filters.body_fit.SilhouetteBodyFit` (``offsets``).
+            subject by :class:`~torchmocap.filters.SilhouetteBodyFit` (``offsets``).
 
     Example:
         >>> from torchmocap.skeleton import human31

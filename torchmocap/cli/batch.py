@@ -1,6 +1,6 @@
 """``torchmocap-track batch_seeds=[0,1,2]``: several seeds tracked in one process.
 
-The job tracks every seed of ``batch_seeds`` with :func:`torchmocap.filters.batched.track_groups`
+The job tracks every seed of ``batch_seeds`` with :func:`torchmocap.filters.track_groups`
 and writes one run directory per seed, ``<run dir>/seed_<s>/``, with the files a separate run
 with ``seed=<s>`` writes (``.hydra/overrides.yaml`` with ``seed=<s>``, so
 ``torchmocap-aggregate`` groups the seeds like the jobs of a seed sweep).
@@ -113,7 +113,7 @@ def run_batch(cfg: DictConfig, out: Path) -> dict:
     from torchmocap.cli.jobs import finish, thread_policy, validate_tracker
     from torchmocap.cli.outputs import print_summary, validate_outputs
     from torchmocap.cli.runs import load_sequence
-    from torchmocap.filters.batched import BatchGroup, track_groups
+    from torchmocap.filters.tracking.batched import BatchGroup, track_groups
 
     seeds = batch_seeds(cfg)
     if cfg.get("checkpoint"):

@@ -1,112 +1,81 @@
-"""torchmocap.filters: resampling, annealing schedules, annealed particle optimisation,
-SIR steps, autoregressive prediction, local optimisation — as functions on generic particle
-tensors ``(P, D)`` — and the tracker components built on them: per-frame inference modules,
-estimators, the pose predictor and the :class:`Tracker` loop.
+"""torchmocap.filters: trackers and the components they are built from.
+
+* :mod:`~torchmocap.filters.tracking` — the :class:`Tracker` loop, its typed records
+  (:class:`Track`, :class:`FrameInfo`, :class:`TrackState`), estimators, the pose predictor, the
+  first frame's body fit, batched seeds;
+* :mod:`~torchmocap.filters.inference` — per-frame inference modules: annealing, local
+  descent, SIR, mixture density propagation;
+* :mod:`~torchmocap.filters.smoothing` — offline smoothers of a finished track;
+* :mod:`~torchmocap.filters.optim` — the functional core on generic particle tensors
+  ``(P, D)``: annealed optimisation, schedules, resampling, SIR steps, local minimisation, the
+  temporal prior, rotation coordinates.
+
+This namespace gathers the components a config chooses by ``_target_`` and a user composes;
+the functions of the core are in :mod:`torchmocap.filters.optim`.
 """
 
-from torchmocap.filters.annealed import (
-    AnnealingResult,
-    CovarianceDiffusion,
-    GeometricDiffusion,
-    anneal,
-    bound_particles,
-    default_diffusion,
-    rotation_mean_fn,
-    weighted_mean,
-)
-from torchmocap.filters.annealing import (
-    BetaSolution,
-    ESSSchedule,
-    GeometricSchedule,
-    PolynomialSchedule,
-    annealing_log_weights,
-    as_schedule,
-    ess_fraction_at_beta,
-    ess_target_beta,
-)
-from torchmocap.filters.estimators import (
-    BestParticleEstimator,
-    Estimator,
-    ManifoldMeanEstimator,
-    TemporalMapEstimator,
-    WeightedMeanEstimator,
-)
 from torchmocap.filters.inference import (
     AnnealedInference,
     Inference,
     InferenceResult,
     LocalInference,
+    MixtureInference,
     ShrinkingDiffusion,
     SIRInference,
     SpreadDiffusion,
 )
-from torchmocap.filters.kalman_smoothing import (
-    KalmanSmoother,
-    cv_kalman_smoother,
-    fit_cv_noise,
-    unwrap_angles,
-)
-from torchmocap.filters.local import LocalResult, minimise_local
-from torchmocap.filters.mixture import (
-    MixtureInference,
-    bhattacharyya_reweight,
-    distinct_minima,
-    energy_derivatives,
-    gauss_newton_function,
-    levenberg_marquardt,
-)
-from torchmocap.filters.prediction import (
-    PosePredictor,
-    RotationGroup,
-    angles_from_matrix,
-    predict_ar3,
-    skeleton_rotation_groups,
-)
-from torchmocap.filters.resampling import (
+from torchmocap.filters.optim import (
+    ESSSchedule,
+    GeometricSchedule,
     KeepRedrawResampler,
     MultinomialResampler,
+    PolynomialSchedule,
     Resampler,
     ResidualResampler,
     StratifiedResampler,
     SystematicResampler,
-    as_resampler,
-    counts_to_indices,
-    effective_sample_size,
-    ess_fraction,
-    gather_particles,
-    keep_redraw_resample,
-    multinomial_resample,
-    normalize_log_weights,
-    offspring_counts,
-    residual_resample,
-    stratified_resample,
-    systematic_resample,
+    TemporalPrior,
 )
-from torchmocap.filters.sir import SIRResult, SIRStep, sir_filter, sir_step
-from torchmocap.filters.smoothing import Smoother, SmootherChain, ViterbiSmoother, viterbi_path
-from torchmocap.filters.state import FrameInfo, Track, TrackState
-from torchmocap.filters.temporal_prior import TemporalPrior, temporal_prior_precision
-from torchmocap.filters.tracker import CheckpointError, MissingObservationError, Tracker
+from torchmocap.filters.smoothing import (
+    KalmanSmoother,
+    Smoother,
+    SmootherChain,
+    ViterbiSmoother,
+)
+from torchmocap.filters.tracking import (
+    BatchGroup,
+    BestParticleEstimator,
+    CheckpointError,
+    Estimator,
+    FrameInfo,
+    ManifoldMeanEstimator,
+    MissingObservationError,
+    PosePredictor,
+    SilhouetteBodyFit,
+    TemporalMapEstimator,
+    Track,
+    Tracker,
+    TrackState,
+    WeightedMeanEstimator,
+    track_groups,
+    track_seeds,
+)
 
 __all__ = [
     "AnnealedInference",
-    "AnnealingResult",
+    "BatchGroup",
     "BestParticleEstimator",
-    "BetaSolution",
     "CheckpointError",
-    "CovarianceDiffusion",
     "ESSSchedule",
     "Estimator",
     "FrameInfo",
-    "GeometricDiffusion",
     "GeometricSchedule",
     "Inference",
     "InferenceResult",
+    "KalmanSmoother",
     "KeepRedrawResampler",
     "LocalInference",
-    "LocalResult",
     "ManifoldMeanEstimator",
-    "TemporalMapEstimator",
     "MissingObservationError",
     "MixtureInference",
     "MultinomialResampler",
@@ -114,58 +83,21 @@ __all__ = [
     "PosePredictor",
     "Resampler",
     "ResidualResampler",
-    "RotationGroup",
     "SIRInference",
-    "SIRResult",
-    "SIRStep",
+    "ShrinkingDiffusion",
+    "SilhouetteBodyFit",
     "Smoother",
     "SmootherChain",
-    "ShrinkingDiffusion",
     "SpreadDiffusion",
     "StratifiedResampler",
     "SystematicResampler",
+    "TemporalMapEstimator",
+    "TemporalPrior",
     "Track",
     "TrackState",
     "Tracker",
-    "TemporalPrior",
     "ViterbiSmoother",
-    "KalmanSmoother",
-    "cv_kalman_smoother",
-    "fit_cv_noise",
-    "unwrap_angles",
     "WeightedMeanEstimator",
-    "angles_from_matrix",
-    "anneal",
-    "as_resampler",
-    "as_schedule",
-    "annealing_log_weights",
-    "bhattacharyya_reweight",
-    "bound_particles",
-    "counts_to_indices",
-    "default_diffusion",
-    "distinct_minima",
-    "effective_sample_size",
-    "energy_derivatives",
-    "ess_fraction",
-    "ess_fraction_at_beta",
-    "ess_target_beta",
-    "gather_particles",
-    "gauss_newton_function",
-    "keep_redraw_resample",
-    "levenberg_marquardt",
-    "minimise_local",
-    "multinomial_resample",
-    "normalize_log_weights",
-    "offspring_counts",
-    "predict_ar3",
-    "residual_resample",
-    "rotation_mean_fn",
-    "sir_filter",
-    "sir_step",
-    "skeleton_rotation_groups",
-    "stratified_resample",
-    "systematic_resample",
-    "temporal_prior_precision",
-    "viterbi_path",
-    "weighted_mean",
+    "track_groups",
+    "track_seeds",
 ]

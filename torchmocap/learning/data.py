@@ -107,7 +107,7 @@ def _negatives(tracker, sequence, neg: NegativeSettings, seed: int, progress: bo
                miner=None) -> dict[int, torch.Tensor]:
     """``{frame index: negatives (K, D)}`` for the frames kept (every ``stride``-th, from 1):
     proposal draws of ``tracker`` and the particle sets of ``miner`` (default: ``tracker``)."""
-    from torchmocap.filters.tracker import initial_pose
+    from torchmocap.filters.tracking.tracker import initial_pose
     from torchmocap.proposals.base import ProposalContext
 
     g = torch.Generator().manual_seed(seed)
@@ -185,7 +185,7 @@ def build_clip_data(clip: Mapping[str, Any], scenario: str = "outdoor",
                 seed=seed)
         negs = _negatives(tracker, seq, neg, seed, progress, miner=miner)
     else:  # calibrate the tracking sensors as the negatives' run did (frame 0)
-        from torchmocap.filters.tracker import initial_pose
+        from torchmocap.filters.tracking.tracker import initial_pose
 
         tracking = None if seq.imu is None else seq.imu.tracking.nonzero()[:, 0]
         tracker.init(initial_pose(seq).to(tracker.dtype),

@@ -31,8 +31,8 @@ from collections.abc import Callable
 
 import torch
 
-from torchmocap.filters.annealing import ess_target_beta
-from torchmocap.filters.resampling import multinomial_resample
+from torchmocap.filters.optim.resampling import multinomial_resample
+from torchmocap.filters.optim.schedules import ess_target_beta
 
 __all__ = [
     "joint_error",

@@ -1,0 +1,36 @@
+"""Per-frame inference modules (``inference(energy, proposal, estimator, context, num,
+generator) -> InferenceResult``): annealed particle optimisation, local descent, sequential
+importance resampling and mixture density propagation."""
+
+from torchmocap.filters.inference.annealed import (
+    AnnealedInference,
+    ShrinkingDiffusion,
+    SpreadDiffusion,
+)
+from torchmocap.filters.inference.base import Inference, InferenceResult
+from torchmocap.filters.inference.local import LocalInference
+from torchmocap.filters.inference.mixture import (
+    MixtureInference,
+    bhattacharyya_reweight,
+    distinct_minima,
+    energy_derivatives,
+    gauss_newton_function,
+    levenberg_marquardt,
+)
+from torchmocap.filters.inference.sir import SIRInference
+
+__all__ = [
+    "AnnealedInference",
+    "Inference",
+    "InferenceResult",
+    "LocalInference",
+    "MixtureInference",
+    "SIRInference",
+    "ShrinkingDiffusion",
+    "SpreadDiffusion",
+    "bhattacharyya_reweight",
+    "distinct_minima",
+    "energy_derivatives",
+    "gauss_newton_function",
+    "levenberg_marquardt",
+]
