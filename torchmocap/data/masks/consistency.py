@@ -17,7 +17,7 @@ from torchmocap.cameras.hull import visual_hull
 from torchmocap.cameras.rig import CameraRig
 from torchmocap.cameras.triangulation import triangulate_dlt
 from torchmocap.data.masks.morphology import dilate
-from torchmocap.data.masks.regions import keypoint_boxes, spanning_tree_distance
+from torchmocap.data.masks.regions import keypoint_boxes, keypoint_graph_distance
 from torchmocap.data.masks.settings import MaskError, MaskSettings
 
 __all__ = ["hull_filter", "hull_regions", "keypoint_gate", "rig_focus_point"]
@@ -111,7 +111,7 @@ def hull_filter(masks: Tensor, rig: CameraRig, bounds: Tensor, settings: MaskSet
             ``hull_margin``.
         skeletons: ``(T, K, 3)`` the subject's triangulated keypoints (NaN where missing), or
             None; a frame with at least 3 keeps only voxels within ``hull_margin`` of their
-            minimum spanning tree (a person standing next to the subject is not carved with it).
+            neighbourhood graph (a person standing next to the subject is not carved with it).
 
     Returns:
         ``(T, C, H, W)`` filtered masks and a JSON-safe dict: ``min_views``, per-frame hull
@@ -135,7 +135,7 @@ def hull_filter(masks: Tensor, rig: CameraRig, bounds: Tensor, settings: MaskSet
             pts = skeletons[t][torch.isfinite(skeletons[t]).all(-1)]
             if pts.shape[0] >= 3:
                 grid = (pts.to(hull.origin) - hull.origin) / hull.voxel_size
-                dist = spanning_tree_distance(grid, tuple(hull.occupancy.shape))
+                dist = keypoint_graph_distance(grid, tuple(hull.occupancy.shape))
                 hull.occupancy &= (dist <= settings.hull_margin / hull.voxel_size).to(
                     hull.occupancy.device)
         part = hull.largest_component()

@@ -44,8 +44,8 @@ def colour_distortion(images: Tensor, background: Tensor) -> tuple[Tensor, Tenso
     b0, b1, b2 = B.unbind(-3)
     bb = (b0 * b0 + b1 * b1 + b2 * b2).clamp_min(1e-6)
     alpha = (i0 * b0 + i1 * b1 + i2 * b2) / bb
-    # I − αB is orthogonal to B: ‖I − αB‖² = ‖I‖² − α²‖B‖²
-    chroma = (i0 * i0 + i1 * i1 + i2 * i2 - alpha * alpha * bb).clamp_min(0).sqrt()
+    chroma = ((i0 - alpha * b0).square() + (i1 - alpha * b1).square()
+              + (i2 - alpha * b2).square()).sqrt()
     brightness = (alpha - 1) * bb.sqrt()
     return alpha, chroma, brightness
 

@@ -43,9 +43,6 @@ def mask_preview(images: Tensor, masks: Tensor, removed: Tensor | None = None,
     tint[m] = 0.45 * img[m] + 0.55 * _KEEP
     tint[r] = 0.45 * img[r] + 0.55 * _REMOVED
     tint = tint.round().clip(0, 255).astype(np.uint8)
-    if sizes is not None:
-        for c, (wc, hc) in enumerate(sizes.tolist()):
-            tint[c, hc:], tint[c, :, wc:] = 0, 0
     if keypoints is not None:
         kp = keypoints.detach().cpu().numpy()
         for c in range(C):
@@ -54,6 +51,9 @@ def mask_preview(images: Tensor, masks: Tensor, removed: Tensor | None = None,
                     continue
                 x, y = int(round(u)), int(round(v))
                 tint[c, max(0, y - 1):y + 2, max(0, x - 1):x + 2] = _KEYPOINT
+    if sizes is not None:
+        for c, (wc, hc) in enumerate(sizes.tolist()):
+            tint[c, hc:], tint[c, :, wc:] = 0, 0
     cols = min(C, 4) if columns is None else max(1, int(columns))
     rows = math.ceil(C / cols)
     grid = np.full((rows * h + (rows - 1) * _GAP, cols * w + (cols - 1) * _GAP, 3), 255,

@@ -1,8 +1,8 @@
 """Image regions from 2D keypoints: robust boxes, and the area near a detected person.
 
 The keypoints' format (BODY_25, COCO, …) is not assumed: a person's limbs are approximated by
-the minimum spanning tree of the confident keypoints (bones link nearby joints), drawn as
-capsules.
+the neighbourhood graph of the confident keypoints (minimum spanning tree plus nearest
+neighbours: bones link nearby joints), drawn as capsules.
 """
 
 from __future__ import annotations
@@ -11,23 +11,32 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["confident_keypoints", "keypoint_boxes", "person_region", "spanning_tree_distance"]
+from torchmocap.data.masks.morphology import fill_holes
+
+__all__ = ["confident_keypoints", "keypoint_boxes", "keypoint_graph_distance", "person_region"]
 
 
 def confident_keypoints(keypoints: Tensor, min_confidence: float) -> Tensor:
-    """``(*, K)`` bool: confidence ≥ ``min_confidence``, finite pixels, and not isolated — a
-    keypoint whose nearest confident neighbour is farther than the median distance between
-    confident keypoints is a detector glitch (e.g. a nose written at u = 0)."""
+    """``(*, K)`` bool: confidence ≥ ``min_confidence``, finite pixels, and not isolated.
+
+    A keypoint is isolated — a detector glitch such as a nose written at u = 0 — when its
+    nearest confident neighbour is farther than both 3 × the median nearest-neighbour distance
+    and half the median distance between confident keypoints (a stretched forearm is neither).
+    Only sets of at least 4 keypoints are checked.
+    """
     kp = keypoints.to(torch.float64)
     ok = (kp[..., 2] >= min_confidence) & torch.isfinite(kp[..., :2]).all(-1)
     xy = torch.where(ok[..., None], kp[..., :2], torch.zeros_like(kp[..., :2]))
     d = (xy[..., :, None, :] - xy[..., None, :, :]).norm(dim=-1)  # (*, K, K)
-    pair = ok[..., :, None] & ok[..., None, :]
     K = kp.shape[-2]
-    pair = pair & ~torch.eye(K, dtype=torch.bool, device=kp.device)
-    nearest = torch.where(pair, d, torch.full_like(d, float("inf"))).amin(-1)
-    med = torch.where(pair, d, torch.full_like(d, float("nan"))).flatten(-2).nanmedian(-1).values
-    isolated = nearest > med[..., None]
+    pair = ok[..., :, None] & ok[..., None, :] & ~torch.eye(K, dtype=torch.bool,
+                                                           device=kp.device)
+    nan = torch.full_like(d, float("nan"))
+    nearest = torch.where(pair, d, torch.full_like(d, float("inf"))).amin(-1)  # (*, K)
+    typical = torch.where(ok, nearest, torch.full_like(nearest, float("nan"))).nanmedian(-1)
+    spread = torch.where(pair, d, nan).flatten(-2).nanmedian(-1).values
+    limit = torch.maximum(3 * typical.values, 0.5 * spread)
+    isolated = nearest > limit[..., None]
     return ok & ~(isolated & (ok.sum(-1, keepdim=True) >= 4))
 
 
@@ -55,36 +64,45 @@ def keypoint_boxes(keypoints: Tensor, min_confidence: float, margin: float) -> T
     return torch.where(enough[..., None], box, torch.full_like(box, float("nan")))
 
 
-def _spanning_edges(points: np.ndarray) -> np.ndarray:
-    """``(E, 2)`` index pairs of the minimum spanning tree of points ``(N, D)``."""
+def _graph_edges(points: np.ndarray, k: int = 3) -> np.ndarray:
+    """``(E, 2)`` index pairs: the minimum spanning tree of ``points (N, D)`` (it connects
+    everything) and each point's ``k`` nearest neighbours (so both thighs of a standing person
+    are drawn, not only the link between the knees)."""
     from scipy.sparse.csgraph import minimum_spanning_tree
     from scipy.spatial.distance import cdist
 
-    if points.shape[0] < 2:
+    n = points.shape[0]
+    if n < 2:
         return np.zeros((0, 2), dtype=np.int64)
+    d = cdist(points, points)
     # coincident points get a tiny distance: a zero weight would mean "no edge"
-    tree = minimum_spanning_tree(cdist(points, points) + 1e-9).tocoo()
-    return np.stack([tree.row, tree.col], 1).astype(np.int64)
+    tree = minimum_spanning_tree(d + 1e-9).tocoo()
+    np.fill_diagonal(d, np.inf)
+    near = np.argsort(d, axis=1)[:, :min(k, n - 1)]
+    knn = np.stack([np.repeat(np.arange(n), near.shape[1]), near.ravel()], 1)
+    edges = np.concatenate([np.stack([tree.row, tree.col], 1), knn]).astype(np.int64)
+    return np.unique(np.sort(edges, axis=1), axis=0)
 
 
-def spanning_tree_distance(points: Tensor, shape: tuple[int, ...]) -> Tensor:
-    """Distance (grid units) from every cell of a grid to the minimum spanning tree of
-    ``points (N, D)`` (N ≥ 1), given in grid index coordinates (cell ``i`` is centred at
+def keypoint_graph_distance(points: Tensor, shape: tuple[int, ...]) -> Tensor:
+    """Distance (grid units) from every cell of a grid to the neighbourhood graph of
+    ``points (N, D)`` (N ≥ 1; minimum spanning tree plus 3 nearest neighbours each — the
+    limbs, for a person's keypoints), given in grid index coordinates (cell ``i`` is centred at
     ``i``): ``(*shape)`` float32.
 
-    The tree's edges are sampled every half cell into the grid (samples outside it are
+    The graph's edges are sampled every half cell into the grid (samples outside it are
     dropped) and the Euclidean distance transform measures the rest, so the result is exact to
-    half a cell.
+    half a cell (diagonal).
 
     Example:
         >>> pts = torch.tensor([[0.0, 0.0], [0.0, 8.0]])
-        >>> spanning_tree_distance(pts, (3, 9))[2].tolist()
+        >>> keypoint_graph_distance(pts, (3, 9))[2].tolist()
         [2.0, 2.0, 2.0, 2.0, 2.0, 2.0, 2.0, 2.0, 2.0]
     """
     from scipy import ndimage
 
     p = points.detach().to(torch.float64).cpu()
-    e = torch.from_numpy(_spanning_edges(p.numpy()))
+    e = torch.from_numpy(_graph_edges(p.numpy()))
     samples = [p]
     if e.shape[0]:
         a, b = p[e[:, 0]], p[e[:, 1]]
@@ -106,9 +124,10 @@ def person_region(keypoints: Tensor, size: tuple[int, int], radius: float,
                   min_confidence: float) -> Tensor:
     """Pixels near a detected person: ``(*, H, W)`` bool.
 
-    Each image's :func:`confident_keypoints` (at least 3) are linked by their minimum spanning
-    tree; a pixel is in the region when it lies within ``radius`` × the keypoints' larger
-    extent (box width or height) of a keypoint or of a tree edge. Images with fewer than 3
+    Each image's :func:`confident_keypoints` (at least 3) are linked by their neighbourhood
+    graph (:func:`keypoint_graph_distance`); a pixel is in the region when it lies within
+    ``radius`` × the keypoints' larger extent (box width or height) of a keypoint or an edge,
+    or inside a loop of such capsules (the torso). Images with fewer than 3
     confident keypoints give an empty region.
 
     Args:
@@ -134,6 +153,7 @@ def person_region(keypoints: Tensor, size: tuple[int, int], radius: float,
             continue
         # grid (row, column) = (v − v0, u − u0)
         local = torch.stack([pts[:, 1] - v0, pts[:, 0] - u0], -1)
-        dist = spanning_tree_distance(local, (v1 - v0 + 1, u1 - u0 + 1))
+        dist = keypoint_graph_distance(local, (v1 - v0 + 1, u1 - u0 + 1))
         out[i, v0:v1 + 1, u0:u1 + 1] = dist <= r
-    return out.reshape(*lead, H, W)
+    # loops of limbs enclose the torso: the area inside belongs to the person too
+    return fill_holes(out).reshape(*lead, H, W)

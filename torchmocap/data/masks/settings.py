@@ -37,7 +37,7 @@ class MaskSettings:
         plate_dilation: the region where the plate replaces the median is grown by this
             fraction of the image height (the subject's blurred outline).
         plate_near_subject: with keypoints, the plate replaces the median only near the subject
-            (within ``subject_radius`` of its keypoints' spanning tree in any of the median's
+            (within ``subject_radius`` of its keypoints' neighbourhood graph in any of the median's
             frames): elsewhere a disagreement is the plate's own clutter — people, moved
             objects — and the video's median is the background there. Without keypoints (or
             when a view has none) the plate is used wherever the two disagree.
@@ -60,8 +60,9 @@ class MaskSettings:
         hull_dilation: masks are dilated by this fraction of the image height before carving
             (tolerance for calibration error; the result is intersected with the undilated masks).
         hull_margin: the hull is carved in the box around the subject's triangulated keypoints
-            padded by this many metres, and only within this distance of their minimum
-            spanning tree (a person beside the subject is not carved with it).
+            padded by this many metres, and only within this distance of their neighbourhood
+            graph (minimum spanning tree plus nearest neighbours: the limbs; a person beside the
+            subject is not carved with it).
         hull_extent: without keypoints (or ``bounds``), half-size (metres) of the cube around
             the point the cameras look at.
         bounds: ``[[xmin, xmax], [ymin, ymax], [zmin, zmax]]`` world box (metres) for the hull,
