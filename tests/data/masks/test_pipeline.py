@@ -91,8 +91,8 @@ class TestRealRecording:
             pose2sim_bystander):
         """With the plate used wherever it disagrees with the median (the plates' own people
         are then foreground too), the bystander is in the masks before the multi-view check
-        (measured 90 % of her keypoints inside) and mostly gone after it (14 % left: none in
-        cam01, 36 % in cam02 where she stands right beside the subject and a plate's person
+        (measured 90 % of her keypoints inside) and mostly gone after it (7 % left: none in
+        cam01, 17 % in cam02 where she stands right beside the subject and a plate's person
         stood there too), while the subject stays (94 % before, 93.5 % after)."""
         images, sizes = pose2sim_frames
         st = MaskSettings(scale=SCALE, plate_near_subject=False)
@@ -114,7 +114,7 @@ class TestRealRecording:
         before_hits = _bystander_hits(fg, pose2sim_bystander)
         after_hits = _bystander_hits(after, pose2sim_bystander)
         assert before_hits.mean() > 0.75
-        assert after_hits.mean() < 0.3
+        assert after_hits.mean() < 0.2
         assert info["min_views"] == 3
         assert _subject_rate(after, pose2sim_keypoints) > 0.88
 

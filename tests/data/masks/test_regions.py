@@ -7,7 +7,7 @@ import numpy as np
 import torch
 
 from torchmocap.data.masks.regions import (
-    _graph_edges,
+    _graph,
     confident_keypoints,
     keypoint_boxes,
     keypoint_graph_distance,
@@ -57,33 +57,61 @@ class TestKeypointBoxes:
         assert bool(torch.isnan(keypoint_boxes(few, 0.3, 0.1)).all())
 
 
+def _segment_distance(q, a, b):
+    """``(M,)`` exact distance of points ``q (M, D)`` to the segments ``a, b (E, D)``."""
+    q = q[:, None]
+    s = (((q - a) * (b - a)).sum(-1) / ((b - a) ** 2).sum(-1)).clamp(0, 1)
+    return (q - a - s[..., None] * (b - a)).norm(dim=-1).amin(-1)
+
+
+def _triangle_distance(q, a, b, c):
+    """Exact distance of points ``q (M, D)`` to the triangle ``a b c`` (2D or 3D): inside its
+    plane's projection the distance to the plane, else to its edges."""
+    e1, e2 = b - a, c - a
+    G = torch.stack([e1, e2]) @ torch.stack([e1, e2]).T
+    rhs = (q - a) @ torch.stack([e1, e2]).T
+    uv = torch.linalg.solve(G, rhs.T).T
+    inside = (uv >= 0).all(-1) & (uv.sum(-1) <= 1)
+    foot = a + uv @ torch.stack([e1, e2])
+    edges = _segment_distance(q, torch.stack([a, b, a]), torch.stack([b, c, c]))
+    return torch.where(inside, (q - foot).norm(dim=-1), edges)
+
+
 class TestKeypointGraphDistance:
     def test_feature_brute_force(self):
-        """Against the exact distance to the graph's segments (within half a cell)."""
+        """Against the exact distance to the graph's segments and triangles (within half a
+        cell's diagonal)."""
         g = torch.Generator().manual_seed(0)
         for dim, shape in ((2, (40, 60)), (3, (12, 15, 18))):
             pts = torch.rand(7, dim, generator=g, dtype=torch.float64) * \
                 (torch.tensor(shape, dtype=torch.float64) - 1)
             dist = keypoint_graph_distance(pts, shape)
-            e = torch.from_numpy(_graph_edges(pts.numpy()))
-            a, b = pts[e[:, 0]], pts[e[:, 1]]
+            edges, tri = _graph(pts.numpy())
             grid = torch.stack(torch.meshgrid(*[torch.arange(n, dtype=torch.float64)
                                                 for n in shape], indexing="ij"), -1)
-            q = grid.reshape(-1, 1, dim)
-            s = (((q - a) * (b - a)).sum(-1) / ((b - a) ** 2).sum(-1)).clamp(0, 1)
-            exact = (q - a - s[..., None] * (b - a)).norm(dim=-1).amin(-1).reshape(shape)
-            assert float((dist.double() - exact).abs().max()) <= 0.5 * dim ** 0.5 + 1e-6
-        # the graph contains the spanning tree (connected) and each point's 3 nearest neighbours
+            q = grid.reshape(-1, dim)
+            exact = _segment_distance(q, pts[edges[:, 0]], pts[edges[:, 1]])
+            for i, j, m in tri:
+                exact = torch.minimum(exact, _triangle_distance(q, pts[i], pts[j], pts[m]))
+            err = (dist.double().reshape(-1) - exact).abs().max()
+            assert float(err) <= 0.5 * dim ** 0.5 + 1e-6
+
+    def test_feature_graph(self):
+        """The graph contains the spanning tree (connected), each point's 3 nearest neighbours,
+        and exactly the triangles of mutually linked points."""
         from scipy.sparse.csgraph import connected_components
 
         xy = np.random.default_rng(0).random((9, 2))
-        e = _graph_edges(xy)
+        e, tri = _graph(xy)
         adj = np.zeros((9, 9), dtype=bool)
         adj[e[:, 0], e[:, 1]] = adj[e[:, 1], e[:, 0]] = True
         assert connected_components(adj)[0] == 1
         d = np.linalg.norm(xy[:, None] - xy[None], axis=-1) + np.diag(np.full(9, np.inf))
         for i, row in enumerate(np.argsort(d, axis=1)[:, :3]):
             assert adj[i, row].all()
+        want = {(i, j, m) for i in range(9) for j in range(i + 1, 9) for m in range(j + 1, 9)
+                if adj[i, j] and adj[j, m] and adj[i, m]}
+        assert {tuple(t) for t in tri.tolist()} == want and len(want) > 0
 
     def test_feature_outside_points(self):
         """Graph parts outside the grid are dropped, not clipped onto its border."""

@@ -2,7 +2,7 @@
 
 The keypoints' format (BODY_25, COCO, …) is not assumed: a person's limbs are approximated by
 the neighbourhood graph of the confident keypoints (minimum spanning tree plus nearest
-neighbours: bones link nearby joints), drawn as capsules.
+neighbours: bones link nearby joints; its triangles span the torso), thickened by a radius.
 """
 
 from __future__ import annotations
@@ -64,16 +64,17 @@ def keypoint_boxes(keypoints: Tensor, min_confidence: float, margin: float) -> T
     return torch.where(enough[..., None], box, torch.full_like(box, float("nan")))
 
 
-def _graph_edges(points: np.ndarray, k: int = 3) -> np.ndarray:
-    """``(E, 2)`` index pairs: the minimum spanning tree of ``points (N, D)`` (it connects
-    everything) and each point's ``k`` nearest neighbours (so both thighs of a standing person
-    are drawn, not only the link between the knees)."""
+def _graph(points: np.ndarray, k: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Neighbourhood graph of ``points (N, D)``: ``(E, 2)`` edges — the minimum spanning tree
+    (it connects everything) and each point's ``k`` nearest neighbours (so both thighs of a
+    standing person are drawn, not only the link between the knees) — and ``(F, 3)`` its
+    triangles (three mutually linked points: the torso between shoulders and hips)."""
     from scipy.sparse.csgraph import minimum_spanning_tree
     from scipy.spatial.distance import cdist
 
     n = points.shape[0]
     if n < 2:
-        return np.zeros((0, 2), dtype=np.int64)
+        return np.zeros((0, 2), dtype=np.int64), np.zeros((0, 3), dtype=np.int64)
     d = cdist(points, points)
     # coincident points get a tiny distance: a zero weight would mean "no edge"
     tree = minimum_spanning_tree(d + 1e-9).tocoo()
@@ -81,18 +82,40 @@ def _graph_edges(points: np.ndarray, k: int = 3) -> np.ndarray:
     near = np.argsort(d, axis=1)[:, :min(k, n - 1)]
     knn = np.stack([np.repeat(np.arange(n), near.shape[1]), near.ravel()], 1)
     edges = np.concatenate([np.stack([tree.row, tree.col], 1), knn]).astype(np.int64)
-    return np.unique(np.sort(edges, axis=1), axis=0)
+    edges = np.unique(np.sort(edges, axis=1), axis=0)
+    adj = np.zeros((n, n), dtype=bool)
+    adj[edges[:, 0], edges[:, 1]] = adj[edges[:, 1], edges[:, 0]] = True
+    tri = [(i, j, m) for i, j in edges for m in np.flatnonzero(adj[i] & adj[j]) if m > j]
+    return edges, np.array(tri, dtype=np.int64).reshape(-1, 3)
+
+
+def _graph_samples(p: Tensor, edges: Tensor, triangles: Tensor) -> Tensor:
+    """Points every half cell on the graph's edges and triangles, ``(M, D)``."""
+    out = [p]
+    if edges.shape[0]:
+        a, b = p[edges[:, 0]], p[edges[:, 1]]
+        n = int(((b - a).norm(dim=-1).max() * 2).ceil()) + 1
+        s = torch.linspace(0, 1, n, dtype=p.dtype)
+        out.append((a[:, None] + s[None, :, None] * (b - a)[:, None]).reshape(-1, p.shape[1]))
+    for i, j, m in triangles.tolist():
+        a, b, c = p[i], p[j], p[m]
+        n = int((torch.stack([b - a, c - a, c - b]).norm(dim=-1).max() * 2).ceil()) + 1
+        s = torch.linspace(0, 1, n, dtype=p.dtype)
+        u, v = torch.meshgrid(s, s, indexing="ij")
+        keep = (u + v) <= 1
+        out.append(a + u[keep, None] * (b - a) + v[keep, None] * (c - a))
+    return torch.cat(out)
 
 
 def keypoint_graph_distance(points: Tensor, shape: tuple[int, ...]) -> Tensor:
     """Distance (grid units) from every cell of a grid to the neighbourhood graph of
-    ``points (N, D)`` (N ≥ 1; minimum spanning tree plus 3 nearest neighbours each — the
-    limbs, for a person's keypoints), given in grid index coordinates (cell ``i`` is centred at
-    ``i``): ``(*shape)`` float32.
+    ``points (N, D)`` (N ≥ 1; minimum spanning tree plus 3 nearest neighbours each, and the
+    triangles they form — limbs and torso, for a person's keypoints), given in grid index
+    coordinates (cell ``i`` is centred at ``i``): ``(*shape)`` float32.
 
-    The graph's edges are sampled every half cell into the grid (samples outside it are
-    dropped) and the Euclidean distance transform measures the rest, so the result is exact to
-    half a cell (diagonal).
+    The graph's edges and triangles are sampled every half cell into the grid (samples outside
+    it are dropped) and the Euclidean distance transform measures the rest, so the result is
+    exact to half a cell (diagonal).
 
     Example:
         >>> pts = torch.tensor([[0.0, 0.0], [0.0, 8.0]])
@@ -102,14 +125,8 @@ def keypoint_graph_distance(points: Tensor, shape: tuple[int, ...]) -> Tensor:
     from scipy import ndimage
 
     p = points.detach().to(torch.float64).cpu()
-    e = torch.from_numpy(_graph_edges(p.numpy()))
-    samples = [p]
-    if e.shape[0]:
-        a, b = p[e[:, 0]], p[e[:, 1]]
-        n = int(((b - a).norm(dim=-1).max() * 2).ceil()) + 1
-        s = torch.linspace(0, 1, n, dtype=torch.float64)
-        samples.append((a[:, None] + s[None, :, None] * (b - a)[:, None]).reshape(-1, p.shape[1]))
-    idx = torch.cat(samples).round().long()
+    edges, triangles = (torch.from_numpy(a) for a in _graph(p.numpy()))
+    idx = _graph_samples(p, edges, triangles).round().long()
     size = torch.tensor(shape)
     idx = idx[((idx >= 0) & (idx < size)).all(-1)]
     seeds = np.ones(shape, dtype=bool)
@@ -126,8 +143,9 @@ def person_region(keypoints: Tensor, size: tuple[int, int], radius: float,
 
     Each image's :func:`confident_keypoints` (at least 3) are linked by their neighbourhood
     graph (:func:`keypoint_graph_distance`); a pixel is in the region when it lies within
-    ``radius`` × the keypoints' larger extent (box width or height) of a keypoint or an edge,
-    or inside a loop of such capsules (the torso). Images with fewer than 3
+    ``radius`` × the keypoints' larger extent (box width or height) of a keypoint, an edge or
+    a triangle of that graph, or is enclosed by such capsules (the torso inside a loop of
+    limbs). Images with fewer than 3
     confident keypoints give an empty region.
 
     Args:
@@ -155,5 +173,5 @@ def person_region(keypoints: Tensor, size: tuple[int, int], radius: float,
         local = torch.stack([pts[:, 1] - v0, pts[:, 0] - u0], -1)
         dist = keypoint_graph_distance(local, (v1 - v0 + 1, u1 - u0 + 1))
         out[i, v0:v1 + 1, u0:u1 + 1] = dist <= r
-    # loops of limbs enclose the torso: the area inside belongs to the person too
+    # limbs that form a loop (shoulders, arms, hips) enclose the torso: fill it
     return fill_holes(out).reshape(*lead, H, W)

@@ -94,7 +94,7 @@ class MaskSettings:
     min_views: int | None = None
     voxel_size: float = 0.03
     hull_dilation: float = 0.004
-    hull_margin: float = 0.3
+    hull_margin: float = 0.2
     hull_extent: float = 1.5
     bounds: tuple[tuple[float, float], ...] | None = None
     keypoint_gate: bool = True
