@@ -21,6 +21,7 @@ from torchmocap.data.masks import (
     foreground_masks,
     hull_filter,
     hull_regions,
+    working_images,
     working_sizes,
 )
 from torchmocap.data.masks.inputs import resize_views
@@ -59,7 +60,7 @@ def real(pose2sim_frames, pose2sim_rig, pose2sim_plates, pose2sim_keypoints):
 
 
 class TestRealRecording:
-    def test_cardinality(self, real, pose2sim_frames):
+    def test_cardinality(self, real, pose2sim_frames, pose2sim_rig):
         masks, report = real
         T, C = pose2sim_frames[0].shape[:2]
         assert masks.shape == (T, C, 480, 272) and masks.dtype == torch.bool
@@ -67,6 +68,9 @@ class TestRealRecording:
         # cam01/cam02 decode 1080 wide: their last two working columns are padding
         assert not bool(masks[:, :2, :, 270:].any())
         json.dumps(report)  # JSON-safe
+        seen = working_images(pose2sim_frames[0][:1], pose2sim_rig, SCALE)
+        assert seen.shape == (1, C, 480, 272, 3) and seen.dtype == torch.uint8
+        assert not bool(seen[:, :2, :, 270:].any()) and bool(seen[:, 2:, :, 270:].any())
 
     def test_feature_masks_cover_the_subject(self, real, pose2sim_keypoints):
         """Every view has a subject-sized mask (not empty, not the whole image), and the
@@ -225,6 +229,20 @@ class TestComputeMasks:
             compute_masks(images, rig, settings={"min_views": 5})
         with pytest.raises(MaskError, match="preview_frame"):
             compute_masks(images, rig, preview="x.png", preview_frame=2)
+
+    def test_device(self, device):
+        """Inputs on ``device`` (a float32 rig, float32 keypoints): masks come back there."""
+        images, rig = _synthetic()
+        pts = torch.tensor([[0.0, 0.0, 0.5], [0.1, 0.0, 1.0], [-0.1, 0.1, 1.5]],
+                           dtype=torch.float64)
+        pix = rig.project(pts)[0]  # (C, 3, 2)
+        kp = torch.cat([pix, torch.full((4, 3, 1), 0.9, dtype=torch.float64)], -1)
+        kp = kp.float().expand(2, 4, 3, 3).contiguous()
+        masks, report = compute_masks(images.to(device), rig.float().to(device),
+                                      images[0].to(device), kp.to(device),
+                                      {"scale": 0.5, "voxel_size": 0.1})
+        assert masks.device.type == device.type and masks.shape == (2, 4, 24, 32)
+        assert report["multiview"]["bounds_from"] == ["keypoints"]
 
     def test_feature_codec_crop_plate(self):
         """A plate 8 px wider than its camera's frames (a codec crop) is accepted, cropped on

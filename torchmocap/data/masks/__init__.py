@@ -26,7 +26,7 @@ from torchmocap.data.masks.cache import (
 )
 from torchmocap.data.masks.consistency import hull_filter, hull_regions, keypoint_gate
 from torchmocap.data.masks.foreground import clean_masks, colour_distortion, foreground_masks
-from torchmocap.data.masks.pipeline import compute_masks, working_sizes
+from torchmocap.data.masks.pipeline import compute_masks, working_images, working_sizes
 from torchmocap.data.masks.preview import mask_preview, write_mask_preview
 from torchmocap.data.masks.registration import register_images, warp_images
 from torchmocap.data.masks.settings import MaskError, MaskSettings
@@ -49,6 +49,7 @@ __all__ = [
     "read_mask_folder",
     "register_images",
     "warp_images",
+    "working_images",
     "working_sizes",
     "write_mask_folder",
     "write_mask_preview",

@@ -91,6 +91,58 @@ def _fit_gain_offset(src: Tensor, dst: Tensor, ok: Tensor, iterations: int = 5
     return gain, offset, sigma
 
 
+def _register(median: Tensor, plate: Tensor, valid: Tensor, settings: MaskSettings,
+              item: dict) -> Tensor:
+    """``(1, 2, 3)`` affine map from frame pixels to ``plate`` pixels: the registration's, or
+    the identity when registration is off or would move a corner too far (noted in ``item``)."""
+    H, W = median.shape[-2:]
+    eye = torch.eye(2, 3, dtype=torch.float64, device=median.device)[None]
+    if not settings.register_plates:
+        return eye
+    reg = register_images(median.mean(0)[None], plate.mean(0)[None], valid[None])
+    corners = torch.tensor([[0.0, 0.0, 1.0], [W - 1, 0.0, 1.0], [0.0, H - 1, 1.0],
+                            [W - 1, H - 1, 1.0]], dtype=torch.float64, device=median.device)
+    moved = float(((corners @ reg["affine"][0].T) - corners[:, :2]).norm(dim=-1).max())
+    item["registration_shift_px"] = round(moved, 3)
+    if moved > settings.max_plate_motion * math.hypot(H, W):
+        item["registration"] = "rejected"
+        return eye
+    item["registration"] = [[round(float(v), 5) for v in row] for row in reg["affine"][0]]
+    return reg["affine"]
+
+
+def _plate_region(median: Tensor, plate: Tensor, valid: Tensor, near: Tensor | None,
+                  settings: MaskSettings, item: dict) -> tuple[Tensor, Tensor, float]:
+    """The registered, gain-corrected plate ``(3, H, W)`` of one camera, where it replaces the
+    median ``(H, W)`` bool, and its noise (per-channel standard deviation of the residual)."""
+    H, W = median.shape[-2:]
+    affine = _register(median, plate, valid, settings, item)
+    warped, inside = warp_images(plate[None], affine, (H, W))
+    warped = warped[0]
+    inside = erode((inside[0] & valid)[None], 1)[0]  # bilinear samples near the plate's edge
+    k = max(1, math.ceil(math.sqrt(H * W / _FIT_PIXELS)))  # a strided subsample suffices
+    gain, offset, sigma = _fit_gain_offset(warped[None, :, ::k, ::k], median[None, :, ::k, ::k],
+                                           inside[None, ::k, ::k])
+    corrected = (warped * gain[0, :, None, None].float() + offset[0, :, None, None].float()
+                 ).clamp(0, 255)
+    sig = float(sigma[0])
+    # colour distance against the norm of 3-channel noise, sqrt(3) sigma
+    disagree = inside & ((corrected - median).norm(dim=0) >
+                         settings.plate_agreement * math.sqrt(3) * sig)
+    # isolated disagreeing pixels are noise; the rest is grown over the blurred outline
+    disagree = dilate(erode(disagree[None], 1), 1)[0] & disagree
+    if settings.plate_dilation > 0:
+        disagree = dilate(disagree[None], max(1, round(settings.plate_dilation * H)))[0] & inside
+    area = max(1, int(valid.sum()))
+    if near is not None and bool(near.any()):
+        item["plate_outside_subject"] = round(float((disagree & ~near).sum()) / area, 4)
+        disagree = disagree & near
+    item.update(gain=[round(float(v), 4) for v in gain[0]],
+                offset=[round(float(v), 3) for v in offset[0]], noise_plate=round(sig, 3),
+                plate_fraction=round(float(disagree.sum()) / area, 4))
+    return corrected, disagree, sig
+
+
 def estimate_background(frames: Tensor, valid: Tensor, plates: list[Tensor | None] | None,
                         settings: MaskSettings, keypoints: Tensor | None = None
                         ) -> BackgroundModel:
@@ -101,11 +153,13 @@ def estimate_background(frames: Tensor, valid: Tensor, plates: list[Tensor | Non
             images are smaller occupies the top-left ``valid`` region).
         valid: ``(C, H, W)`` bool, each camera's image region.
         plates: per camera a ``(3, H', W')`` float plate at the working resolution whose pixel
-            ``(0, 0)`` shows the frames' pixel ``(0, 0)`` (codec crops are on the right and
-            bottom), or None; None for no plates at all.
+            ``(0, 0)`` shows about the frames' pixel ``(0, 0)`` (codec crops are on the right
+            and bottom; registration finds the rest), or None; None for no plates at all.
         settings: :class:`MaskSettings` (``median_frames``, ``register_plates``,
-            ``max_plate_motion``, ``plate_agreement``, ``plate_dilation``,
-            ``plate_near_subject``, ``subject_radius``, ``min_confidence``, ``min_noise``).
+            ``max_plate_motion``, ``plate_agreement`` — the plate and the median disagree
+            where their colour distance exceeds ``plate_agreement`` × √3 × the residual's
+            per-channel standard deviation —, ``plate_dilation``, ``plate_near_subject``,
+            ``subject_radius``, ``min_confidence``, ``min_noise``).
         keypoints: ``(T, C, K, 3)`` the subject's detections at the working resolution, or
             None.
 
@@ -124,67 +178,22 @@ def estimate_background(frames: Tensor, valid: Tensor, plates: list[Tensor | Non
     colour = median.clone()
     noise = sigma_median[:, None, None].expand(C, H, W).clone()
     from_plate = torch.zeros(C, H, W, dtype=torch.bool, device=dev)
-    info: list[dict] = []
-    diag = math.hypot(H, W)
     near = None
     if keypoints is not None and settings.plate_near_subject:
-        region = person_region(keypoints[idx.to(keypoints.device)], (H, W),
-                               settings.subject_radius, settings.min_confidence)
-        near = region.any(0).to(dev)  # (C, H, W)
-    grow = max(1, round(settings.plate_dilation * H)) if settings.plate_dilation > 0 else 0
+        near = person_region(keypoints[idx.to(keypoints.device)], (H, W),
+                             settings.subject_radius, settings.min_confidence).any(0).to(dev)
+    info: list[dict] = []
     for c in range(C):
         item: dict = {"median_frames": int(idx.numel()),
-                      "noise_median": round(float(sigma_median[c]), 3)}
-        plate = None if plates is None else plates[c]
-        if plate is None:
-            item["plate"] = False
-            info.append(item)
-            continue
-        plate = plate.to(dev, torch.float32)
-        affine = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype=torch.float64,
-                              device=dev)[None]
-        item["plate"] = True
-        if settings.register_plates:
-            reg = register_images(median[c:c + 1].mean(1), plate[None].mean(1), valid[c:c + 1])
-            corners = torch.tensor([[0.0, 0.0, 1.0], [W - 1, 0.0, 1.0], [0.0, H - 1, 1.0],
-                                    [W - 1, H - 1, 1.0]], dtype=torch.float64, device=dev)
-            moved = ((corners @ reg["affine"][0].T) - corners[:, :2]).norm(dim=-1).max()
-            item["registration_shift_px"] = round(float(moved), 3)
-            if float(moved) <= settings.max_plate_motion * diag:
-                affine = reg["affine"]
-                item["registration"] = [[round(float(v), 5) for v in row]
-                                        for row in affine[0].tolist()]
-            else:
-                item["registration"] = "rejected"
-        warped, inside = warp_images(plate[None], affine, (H, W))
-        warped, inside = warped[0], inside[0] & valid[c]
-        inside = erode(inside[None], 1)[0]  # bilinear samples near the plate's edge
-        k = max(1, math.ceil(math.sqrt(H * W / _FIT_PIXELS)))  # a strided subsample suffices
-        gain, offset, sigma_pm = _fit_gain_offset(warped[None, :, ::k, ::k],
-                                                  median[c:c + 1, :, ::k, ::k],
-                                                  inside[None, ::k, ::k])
-        corrected = (warped * gain[0, :, None, None].float() + offset[0, :, None, None].float()
-                     ).clamp(0, 255)
-        dist = (corrected - median[c]).norm(dim=0)
-        sig = float(sigma_pm[0])
-        disagree = inside & (dist > settings.plate_agreement * math.sqrt(3) * sig)
-        # isolated disagreeing pixels are noise; the rest is grown over the blurred outline
-        disagree = dilate(erode(disagree[None], 1), 1)[0] & disagree
-        if grow:
-            disagree = dilate(disagree[None], grow)[0] & inside
-        if near is not None and bool(near[c].any()):
-            item["plate_outside_subject"] = round(
-                float((disagree & ~near[c]).sum()) / max(1, int(valid[c].sum())), 4)
-            disagree = disagree & near[c]
-        colour[c] = torch.where(disagree[None], corrected, median[c])
-        noise[c] = torch.where(disagree, torch.full_like(noise[c], sig), noise[c])
-        from_plate[c] = disagree
-        item.update(gain=[round(float(v), 4) for v in gain[0]],
-                    offset=[round(float(v), 3) for v in offset[0]],
-                    noise_plate=round(sig, 3),
-                    plate_fraction=round(float(disagree.sum()) / max(1, int(valid[c].sum())),
-                                         4))
+                      "noise_median": round(float(sigma_median[c]), 3),
+                      "plate": plates is not None and plates[c] is not None}
         info.append(item)
-    noise = noise.clamp_min(settings.min_noise)
-    return BackgroundModel(colour, noise, from_plate, info)
-
+        if not item["plate"]:
+            continue
+        corrected, use, sig = _plate_region(median[c], plates[c].to(dev, torch.float32),
+                                            valid[c], None if near is None else near[c],
+                                            settings, item)
+        colour[c] = torch.where(use[None], corrected, median[c])
+        noise[c] = torch.where(use, torch.full_like(noise[c], sig), noise[c])
+        from_plate[c] = use
+    return BackgroundModel(colour, noise.clamp_min(settings.min_noise), from_plate, info)

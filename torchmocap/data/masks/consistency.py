@@ -9,6 +9,8 @@ mask components that overlap the subject's keypoint box in that view.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -63,7 +65,7 @@ def hull_regions(rig: CameraRig, keypoints: Tensor | None, settings: MaskSetting
         return cube[None], None, ["cameras"]
     kp = keypoints.to(dev, torch.float64)
     w = torch.where(kp[..., 2] >= settings.min_confidence, kp[..., 2], torch.zeros_like(kp[..., 2]))
-    X = triangulate_dlt(kp[..., :2], w, rig.double())  # (T, K, 3)
+    X = triangulate_dlt(kp[..., :2], w, rig)  # (T, K, 3) float64 (the pixels' dtype)
     T = X.shape[0]
     boxes = torch.empty(T, 3, 2, dtype=torch.float64, device=dev)
     ok = torch.zeros(T, dtype=torch.bool)
@@ -158,25 +160,22 @@ def keypoint_gate(masks: Tensor, keypoints: Tensor, settings: MaskSettings) -> t
     from scipy import ndimage
 
     T, C, H, W = masks.shape
-    box = keypoint_boxes(keypoints.to(masks.device, torch.float64), settings.min_confidence,
-                         settings.keypoint_margin).reshape(T * C, 4)
-    m = masks.reshape(T * C, H, W)
+    box = keypoint_boxes(keypoints.to(torch.float64), settings.min_confidence,
+                         settings.keypoint_margin).reshape(T * C, 4).cpu()
+    gated = torch.isfinite(box).all(-1)
     s = np.zeros((3, 3, 3), dtype=bool)
     s[1] = True
-    labels_np, n = ndimage.label(m.cpu().numpy(), structure=s)
-    if n == 0:
-        return masks, {"components_removed": 0, "views_ungated": 0}
-    labels = torch.from_numpy(labels_np).to(masks.device)
-    u = torch.arange(W, device=masks.device, dtype=torch.float64)[None, None, :]
-    v = torch.arange(H, device=masks.device, dtype=torch.float64)[None, :, None]
-    gated = torch.isfinite(box).all(-1)
-    b = torch.where(gated[:, None], box, torch.zeros_like(box))[:, :, None, None]
-    inside = (u >= b[:, 0]) & (u <= b[:, 2]) & (v >= b[:, 1]) & (v <= b[:, 3])
-    inside = inside | ~gated[:, None, None]
-    keep = torch.zeros(n + 1, dtype=torch.bool, device=masks.device)
-    keep[labels[inside & (labels > 0)]] = True
+    labels, n = ndimage.label(masks.reshape(T * C, H, W).cpu().numpy(), structure=s)
+    keep = np.zeros(n + 1, dtype=bool)
+    for i in range(T * C):
+        if bool(gated[i]):
+            u0, v0 = (max(0, math.ceil(float(x))) for x in box[i, :2])
+            u1, v1 = (math.floor(float(x)) for x in box[i, 2:])
+            region = labels[i, v0:v1 + 1, u0:u1 + 1] if u1 >= u0 and v1 >= v0 else labels[i, :0]
+        else:
+            region = labels[i]
+        keep[np.unique(region)] = True
     keep[0] = False
-    out = keep[labels]
-    removed = int((~keep[1:]).sum())
-    return out.reshape(T, C, H, W), {"components_removed": removed,
-                                     "views_ungated": int((~gated).sum())}
+    removed = int(n - keep.sum())
+    out = torch.from_numpy(keep[labels]).to(masks.device).reshape(T, C, H, W)
+    return out, {"components_removed": removed, "views_ungated": int((~gated).sum())}

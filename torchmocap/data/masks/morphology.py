@@ -15,16 +15,22 @@ __all__ = ["closing", "dilate", "drop_small_components", "erode", "fill_holes", 
 
 
 def _window_any(x: Tensor, radius: int, dim: int) -> Tensor:
-    """True where any of ``x[i - r .. i + r]`` along ``dim`` is (outside counts as False),
-    from a cumulative sum: linear in the size whatever the radius."""
-    n = x.shape[dim]
-    c = x.to(torch.int32).cumsum(dim)
-    zeros = torch.zeros_like(c.narrow(dim, 0, 1)).expand(
-        *[radius + 1 if d == dim % c.dim() else s for d, s in enumerate(c.shape)])
-    last = c.narrow(dim, n - 1, 1).expand(
-        *[radius if d == dim % c.dim() else s for d, s in enumerate(c.shape)])
-    c = torch.cat([zeros, c, last], dim)  # c[j] = count of x[.. j - r - 1]
-    return (c.narrow(dim, 2 * radius + 1, n) - c.narrow(dim, 0, n)) > 0
+    """True where any of ``x[i - r .. i + r]`` along ``dim`` is (outside counts as False).
+
+    Windows double in length by OR-ing shifted copies (van Herk style), so the cost grows with
+    log(r), on bool tensors.
+    """
+    n, k = x.shape[dim], 2 * radius + 1
+    pad = torch.zeros_like(x.narrow(dim, 0, 1)).expand(
+        *[radius if d == dim % x.dim() else s for d, s in enumerate(x.shape)])
+    y = torch.cat([pad, x, pad], dim)  # y[j] will cover x[j - r .. j + r]
+    length, w = n + 2 * radius, 1
+    while 2 * w <= k:  # y[j]: any of the padded x[j .. j + 2w - 1]
+        y = y.narrow(dim, 0, length - w) | y.narrow(dim, w, length - w)
+        length, w = length - w, 2 * w
+    if w < k:  # two overlapping windows of w cover k
+        y = y.narrow(dim, 0, length - (k - w)) | y.narrow(dim, k - w, length - (k - w))
+    return y
 
 
 def dilate(masks: Tensor, radius: int) -> Tensor:
