@@ -17,8 +17,8 @@ __all__ = ["closing", "dilate", "drop_small_components", "erode", "fill_holes", 
 def _window_any(x: Tensor, radius: int, dim: int) -> Tensor:
     """True where any of ``x[i - r .. i + r]`` along ``dim`` is (outside counts as False).
 
-    Windows double in length by OR-ing shifted copies (van Herk style), so the cost grows with
-    log(r), on bool tensors.
+    The window doubles in length with each OR of two shifted copies, so the cost grows with
+    log(r) (bool tensors, any device).
     """
     n, k = x.shape[dim], 2 * radius + 1
     pad = torch.zeros_like(x.narrow(dim, 0, 1)).expand(
