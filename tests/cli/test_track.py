@@ -34,7 +34,7 @@ def _console(args, tmp_path, timeout=600, **env):
 
 def test_defaults():
     cfg = _compose([])
-    assert cfg.tracker.name == "p_prior_refined" and cfg.tracker.num_particles == 200
+    assert cfg.tracker.name == "default" and cfg.tracker.num_particles == 200
     assert cfg.tracker.inference.layers == 15 and cfg.data.scenario == "studio"
     assert cfg.data.clip.path is None and cfg.seed == 0
     assert "file://conf" in cfg.hydra.searchpath if "hydra" in cfg else True
@@ -58,7 +58,7 @@ def test_in_process_run_writes_outputs_and_skips_when_up_to_date(tmp_path):
     for key in ("frames", "seconds_per_frame", "orientation_error_deg", "mpjpe_mm",
                 "fingerprint", "ess_final_mean", "energy_mean"):
         assert key in saved
-    assert saved["frames"] == 6 and saved["tracker"] == "p_prior_refined" and saved["layers"] == 3
+    assert saved["frames"] == 6 and saved["tracker"] == "default" and saved["layers"] == 3
     assert set(saved["orientation_error_deg"]["per_bone"]) == {
         "spine", "l_shoulder", "r_shoulder", "l_hip", "r_hip"}
     assert 0 <= saved["orientation_error_deg"]["mean"] < 45

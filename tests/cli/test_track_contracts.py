@@ -67,7 +67,7 @@ def test_a_second_run_into_a_busy_directory_is_refused(tmp_path):
         assert first.wait(timeout=600) == 0
     overrides = (d / ".hydra" / "overrides.yaml").read_text()
     assert "tracker=g" not in overrides  # the refused run wrote nothing there
-    assert json.loads((d / "metrics.json").read_text())["tracker"] == "p_prior_refined"
+    assert json.loads((d / "metrics.json").read_text())["tracker"] == "default"
 
 
 @pytest.mark.slow

@@ -63,8 +63,8 @@ def camera_key(name: str) -> str:
     (without leading zeros), else its lower-case letters and digits.
 
     Example:
-        >>> [camera_key(n) for n in ("cam01", "cam_01", "Camera1", "CAM1", "1", "cam01_json")]
-        ['1', '1', '1', '1', '1', '1']
+        >>> {camera_key(n) for n in ("cam01", "cam_01", "Camera1", "CAM1", "1", "cam01_json")}
+        {'1'}
         >>> camera_key("Left-View")
         'leftview'
     """
