@@ -69,16 +69,13 @@ HUMAN31_SEGMENTS: dict[str, tuple[str, str | None, str | None]] = {
     "pelvis": ("joint-pelvis", None, None),
     "spine": ("joint-spine-3", "joint-neck", "neck"),
     "neck": ("joint-neck", "joint-head-2", "head_top"),
-    "l_shoulder": ("joint-l-shoulder", "joint-l-elbow", "l_elbow"),
-    "r_shoulder": ("joint-r-shoulder", "joint-r-elbow", "r_elbow"),
-    "l_elbow": ("joint-l-elbow", "joint-l-hand", "l_wrist"),
-    "r_elbow": ("joint-r-elbow", "joint-r-hand", "r_wrist"),
-    "l_hip": ("joint-l-upper-leg", "joint-l-knee", "l_knee"),
-    "r_hip": ("joint-r-upper-leg", "joint-r-knee", "r_knee"),
-    "l_knee": ("joint-l-knee", "joint-l-ankle", "l_ankle"),
-    "r_knee": ("joint-r-knee", "joint-r-ankle", "r_ankle"),
-    "l_ankle": ("joint-l-ankle", "joint-l-toe-3-1", "l_toe"),
-    "r_ankle": ("joint-r-ankle", "joint-r-toe-3-1", "r_toe"),
+    **{f"{s}_{joint}": (f"joint-{s}-{cube}", f"joint-{s}-{end_cube}", f"{s}_{end}")
+       for joint, cube, end_cube, end in (("shoulder", "shoulder", "elbow", "elbow"),
+                                           ("elbow", "elbow", "hand", "wrist"),
+                                           ("hip", "upper-leg", "knee", "knee"),
+                                           ("knee", "knee", "ankle", "ankle"),
+                                           ("ankle", "ankle", "toe-3-1", "toe"))
+       for s in ("l", "r")},
 }
 
 #: stature reference points: (mesh top cube, skeleton top joint, ankle pairs)

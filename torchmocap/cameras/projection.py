@@ -47,17 +47,23 @@ def _check_last(name: str, x: Tensor, shape: tuple[int, ...]) -> None:
                          f"{tuple(x.shape)}")
 
 
+class CameraError(ValueError):
+    """Malformed camera parameters or calibration file (names the file and line when known)."""
+
+
 def _check_rig_params(K: Tensor, dist: Tensor | None, R: Tensor, t: Tensor) -> int:
+    """``C`` after checking the shapes of ``K (C, 3, 3)``, ``R (C, 3, 3)``, ``t (C, 3)`` and
+    ``dist (C, 5)`` (:class:`CameraError`)."""
     if K.dim() != 3 or K.shape[-2:] != (3, 3):
-        raise ValueError(f"K must have shape (C, 3, 3), got {tuple(K.shape)}")
+        raise CameraError(f"K must have shape (C, 3, 3), got {tuple(K.shape)}")
     C = K.shape[0]
     if R.shape != (C, 3, 3):
-        raise ValueError(f"R must have shape ({C}, 3, 3) to match K, got {tuple(R.shape)}")
+        raise CameraError(f"R must have shape ({C}, 3, 3) to match K, got {tuple(R.shape)}")
     if t.shape != (C, 3):
-        raise ValueError(f"t must have shape ({C}, 3) to match K, got {tuple(t.shape)}")
+        raise CameraError(f"t must have shape ({C}, 3) to match K, got {tuple(t.shape)}")
     if dist is not None and dist.shape != (C, 5):
-        raise ValueError(f"dist must have shape ({C}, 5) (k1, k2, p1, p2, k3), got "
-                         f"{tuple(dist.shape)}")
+        raise CameraError(f"dist must have shape ({C}, 5) (k1, k2, p1, p2, k3), got "
+                          f"{tuple(dist.shape)}")
     return C
 
 

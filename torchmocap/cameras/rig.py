@@ -9,6 +9,8 @@ import torch
 from torch import Tensor, nn
 
 from torchmocap.cameras.projection import (
+    CameraError,
+    _check_rig_params,
     backproject_pixels,
     camera_centers,
     look_at,
@@ -18,10 +20,6 @@ from torchmocap.cameras.projection import (
 
 __all__ = ["CameraError", "CameraRig", "estimate_up_direction", "make_ceiling_rig",
            "make_ring_rig"]
-
-
-class CameraError(ValueError):
-    """Malformed camera parameters or calibration file (names the file and line when known)."""
 
 
 def _check_image_size(image_size, C: int | None = None, name: str = "image_size") -> Tensor:
@@ -126,18 +124,10 @@ class CameraRig(nn.Module):
         if not K.is_floating_point():
             K = K.double()
         R, t = torch.as_tensor(R, dtype=K.dtype), torch.as_tensor(t, dtype=K.dtype)
-        if K.dim() != 3 or K.shape[-2:] != (3, 3):
-            raise CameraError(f"K must have shape (C, 3, 3), got {tuple(K.shape)}")
-        C = K.shape[0]
-        if R.shape != (C, 3, 3):
-            raise CameraError(f"R must have shape ({C}, 3, 3), got {tuple(R.shape)}")
-        if t.shape != (C, 3):
-            raise CameraError(f"t must have shape ({C}, 3), got {tuple(t.shape)}")
+        C = _check_rig_params(K, None, R, t)
         dist = torch.zeros(C, 5, dtype=K.dtype) if dist is None else torch.as_tensor(
             dist, dtype=K.dtype)
-        if dist.shape != (C, 5):
-            raise CameraError(f"dist must have shape ({C}, 5) (k1, k2, p1, p2, k3), got "
-                              f"{tuple(dist.shape)}")
+        _check_rig_params(K, dist, R, t)
         size = _check_image_size(image_size, C)
         for name, x in (("K", K), ("R", R), ("t", t), ("dist", dist)):
             if not bool(torch.isfinite(x).all()):

@@ -79,6 +79,19 @@ def _debye_log_ratio(nu: float, x: torch.Tensor) -> torch.Tensor:
     return out + _debye_log_corr(nu + 1, x)
 
 
+def _series_or_large(nu: float, x: torch.Tensor):
+    """``(dtype, small, xs, xl)``: where the series is used (``small``), and ``x`` in float64
+    with the other branch's entries replaced by a harmless value for each branch."""
+    if nu < 0:
+        raise ValueError(f"nu: expected an order >= 0, got {nu}")
+    dtype = x.dtype
+    x = x.to(torch.float64)
+    small = x < _SERIES_MAX_X
+    xs = torch.where(small, x, torch.zeros_like(x))
+    xl = torch.where(small, torch.full_like(x, _SERIES_MAX_X), x)
+    return dtype, small, xs, xl
+
+
 def log_bessel_iv_scaled_power(nu: float, x: torch.Tensor) -> torch.Tensor:
     """``log( I_nu(x) / (x/2)^nu )``, finite (``-lgamma(nu+1)``) at ``x = 0``.
 
@@ -88,13 +101,7 @@ def log_bessel_iv_scaled_power(nu: float, x: torch.Tensor) -> torch.Tensor:
     Returns:
         ``(*)``, same dtype.
     """
-    if nu < 0:
-        raise ValueError(f"nu: expected an order >= 0, got {nu}")
-    dtype = x.dtype
-    x = x.to(torch.float64)
-    small = x < _SERIES_MAX_X
-    xs = torch.where(small, x, torch.zeros_like(x))
-    xl = torch.where(small, torch.full_like(x, _SERIES_MAX_X), x)
+    dtype, small, xs, xl = _series_or_large(nu, x)
     series = _series_log_s(nu, xs)
     large = _log_ive_large(nu, xl) + xl - nu * torch.log(0.5 * xl)
     return torch.where(small, series, large).to(dtype)
@@ -102,13 +109,7 @@ def log_bessel_iv_scaled_power(nu: float, x: torch.Tensor) -> torch.Tensor:
 
 def log_bessel_ive_scaled_power(nu: float, x: torch.Tensor) -> torch.Tensor:
     """``log( I_nu(x) / (x/2)^nu ) - x`` without forming ``log I_nu(x)`` (stable to 1e30)."""
-    if nu < 0:
-        raise ValueError(f"nu: expected an order >= 0, got {nu}")
-    dtype = x.dtype
-    x = x.to(torch.float64)
-    small = x < _SERIES_MAX_X
-    xs = torch.where(small, x, torch.zeros_like(x))
-    xl = torch.where(small, torch.full_like(x, _SERIES_MAX_X), x)
+    dtype, small, xs, xl = _series_or_large(nu, x)
     series = _series_log_s(nu, xs) - xs
     large = _log_ive_large(nu, xl) - nu * torch.log(0.5 * xl)
     return torch.where(small, series, large).to(dtype)

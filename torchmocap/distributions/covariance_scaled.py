@@ -207,13 +207,8 @@ def covariance_scaled_sample(
 
 
 def mixture_covariance_scaled_sample(
-    weights: torch.Tensor,
-    means: torch.Tensor,
-    covs: torch.Tensor,
-    num: int,
-    scale: float = 4.0,
-    tails: str = "gaussian",
-    dof: float | None = None,
+    weights: torch.Tensor, means: torch.Tensor, covs: torch.Tensor, num: int,
+    scale: float = 4.0, tails: str = "gaussian", dof: float | None = None,
     generator: torch.Generator | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Samples from ``sum_k pi_k N(mu_k, s Sigma_k)`` (or its heavy-tailed version).

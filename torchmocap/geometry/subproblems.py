@@ -302,12 +302,8 @@ def subproblem2(
 
 
 def three_axis_decomposition(
-    R: torch.Tensor,
-    w1: torch.Tensor,
-    w2: torch.Tensor,
-    w3: torch.Tensor,
-    tol: float | None = None,
-    default_theta1: torch.Tensor | None = None,
+    R: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor, w3: torch.Tensor,
+    tol: float | None = None, default_theta1: torch.Tensor | None = None,
     compute_residual: bool = True,
 ) -> ThreeAxisResult:
     """Angles with ``rot(w1, t1) rot(w2, t2) rot(w3, t3) = R`` (Pons-Moll eqs. 12–14).

@@ -825,18 +825,11 @@ class SkeletonProjection(nn.Module):
         torch.Size([5, 14])
     """
 
-    def __init__(
-        self,
-        skeleton: Skeleton,
-        *,
-        joints: Sequence[int] | Sequence[str] | None = None,
-        joint_weights: torch.Tensor | None = None,
-        prior_weight: float = 1e-3,
-        iterations: int = 50,
-        tol: float = 1e-4,
-        damping: float = 1e-3,
-        free_dofs: Sequence[int] | torch.Tensor | None = None,
-    ):
+    def __init__(self, skeleton: Skeleton, *,
+                 joints: Sequence[int] | Sequence[str] | None = None,
+                 joint_weights: torch.Tensor | None = None, prior_weight: float = 1e-3,
+                 iterations: int = 50, tol: float = 1e-4, damping: float = 1e-3,
+                 free_dofs: Sequence[int] | torch.Tensor | None = None):
         super().__init__()
         self.skeleton = skeleton
         self.joints = _resolve_joints(skeleton, joints)

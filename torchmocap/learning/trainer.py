@@ -50,12 +50,17 @@ class EndToEndSettings:
     drawn by the tracker's proposal at ``start_scale`` times its spread around the truth."""
 
     mode: str = "annealing"
+    """``annealing`` (layers with stop-gradient resampling) or ``descent`` (Adam steps)."""
     particles: int = 48
     layers: int = 3
+    """annealing: particles and layers unrolled."""
     steps: int = 5
     lr: float = 0.02
+    """descent: steps and learning rate unrolled."""
     start_scale: float = 2.0
+    """the start's spread, times the tracker proposal's own."""
     weight: float = 1.0
+    """the end-to-end loss's weight beside the ranking loss (objective ``both``)."""
 
 
 @dataclass
@@ -63,15 +68,22 @@ class TrainSettings:
     """Settings of :class:`Trainer` (the ``torchmocap-train`` config without data and term)."""
 
     objective: str = "ranking"
+    """``ranking``, ``end_to_end`` or ``both``."""
     err_scale: float = 0.02
     err_rotation: float = 0.0
+    """a candidate's error: joint error over ``err_scale`` metres plus ``err_rotation`` times
+    its rotation error."""
     base: str = "tracker"
+    """``tracker``: the term is trained on top of the tracker's own cost; ``none``: alone."""
     max_negatives: int = 32
     optimizer: str = "adam"
+    """``adam``, ``adamw`` or ``sgd`` (:data:`OPTIMISERS`)."""
     lr: float = 3e-3
     weight_decay: float = 0.0
     schedule: str = "cosine"
+    """learning-rate schedule: ``none``, ``cosine`` or ``step``."""
     grad_clip: float = 5.0
+    """the gradient's largest norm (0: no clipping)."""
     batch_size: int = 8
     epochs: int = 10
     seed: int = 0

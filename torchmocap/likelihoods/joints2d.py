@@ -256,6 +256,22 @@ def occlusion_energy(positions: torch.Tensor, observation: Joints2DObservation, 
         return wrong.sum((-1, -2)).to(positions.dtype) * math.log((1.0 - error) / error)
 
 
+def check_detection_settings(owner: str, rig, robust: str, reduction: str, on_empty: str,
+                             min_confidence) -> None:
+    """The settings a reprojection term of 2D detections shares (typed errors naming them)."""
+    if rig is None:
+        raise ValueError(f"rig: {owner} needs the camera rig of the detections")
+    if robust not in ROBUST_COSTS:
+        raise ValueError(f"robust: expected one of {ROBUST_COSTS}, got {robust!r}")
+    if reduction not in ("sum", "mean"):
+        raise ValueError(f"reduction: expected 'sum' or 'mean', got {reduction!r}")
+    if on_empty not in ("raise", "uninformative"):
+        raise ValueError(f"on_empty: expected 'raise' or 'uninformative', got {on_empty!r}")
+    if isinstance(min_confidence, bool) or not (
+            isinstance(min_confidence, (int, float)) and 0 <= min_confidence <= 1):
+        raise ValueError(f"min_confidence: expected a number in [0, 1], got {min_confidence!r}")
+
+
 class Joints2DLikelihood(Likelihood):
     """Robust reprojection energy of the skeleton's joints against 2D detections.
 
@@ -284,20 +300,11 @@ class Joints2DLikelihood(Likelihood):
                  reduction: str = "sum", on_empty: str = "raise", occlusion: str = "none",
                  body=None, occlusion_error: float = 0.1, occluded_below: float = 0.55) -> None:
         super().__init__()
-        if rig is None:
-            raise ValueError("rig: Joints2DLikelihood needs the camera rig of the detections")
+        check_detection_settings(type(self).__name__, rig, robust, reduction, on_empty,
+                                 min_confidence)
         if not (isinstance(scale_px, (int, float)) and not isinstance(scale_px, bool)
                 and math.isfinite(scale_px) and scale_px > 0):
             raise ValueError(f"scale_px: expected a finite number > 0, got {scale_px!r}")
-        if robust not in ROBUST_COSTS:
-            raise ValueError(f"robust: expected one of {ROBUST_COSTS}, got {robust!r}")
-        if reduction not in ("sum", "mean"):
-            raise ValueError(f"reduction: expected 'sum' or 'mean', got {reduction!r}")
-        if on_empty not in ("raise", "uninformative"):
-            raise ValueError(f"on_empty: expected 'raise' or 'uninformative', got {on_empty!r}")
-        if not (isinstance(min_confidence, (int, float)) and 0 <= min_confidence <= 1):
-            raise ValueError(f"min_confidence: expected a number in [0, 1], got "
-                             f"{min_confidence!r}")
         if occlusion not in OCCLUSION_MODELS:
             raise ValueError(f"occlusion: expected one of {OCCLUSION_MODELS}, got {occlusion!r}")
         if occlusion != "none" and body is None:

@@ -50,9 +50,9 @@ from torch import nn
 
 from torchmocap.likelihoods.base import Likelihood, Poses
 from torchmocap.likelihoods.joints2d import (
-    ROBUST_COSTS,
     EmptyEvidenceError,
     Joints2DObservation,
+    check_detection_settings,
     joints2d_energy,
 )
 from torchmocap.skeleton.keypoints import KeypointMap, keypoint_positions, load_keypoint_map
@@ -105,18 +105,8 @@ class KeypointLikelihood(Likelihood):
                  min_confidence: float = 0.0, reduction: str = "sum", on_empty: str = "raise",
                  learn_offsets: bool = False, learn_scale: bool = False) -> None:
         super().__init__()
-        if rig is None:
-            raise ValueError("rig: KeypointLikelihood needs the camera rig of the detections")
-        if robust not in ROBUST_COSTS:
-            raise ValueError(f"robust: expected one of {ROBUST_COSTS}, got {robust!r}")
-        if reduction not in ("sum", "mean"):
-            raise ValueError(f"reduction: expected 'sum' or 'mean', got {reduction!r}")
-        if on_empty not in ("raise", "uninformative"):
-            raise ValueError(f"on_empty: expected 'raise' or 'uninformative', got {on_empty!r}")
-        if isinstance(min_confidence, bool) or not (
-                isinstance(min_confidence, (int, float)) and 0 <= min_confidence <= 1):
-            raise ValueError(f"min_confidence: expected a number in [0, 1], got "
-                             f"{min_confidence!r}")
+        check_detection_settings(type(self).__name__, rig, robust, reduction, on_empty,
+                                 min_confidence)
         scales = _check_scales(scale_px, rig.num_cameras)
         self.kmap = load_keypoint_map(keypoint_map, skeleton)
         self.keypoint_names = (list(self.kmap.format_keypoints) if keypoint_names is None

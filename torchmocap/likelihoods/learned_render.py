@@ -51,12 +51,11 @@ def soft_render_capsules(endpoints: torch.Tensor, radii: torch.Tensor, rig,
     through it).
 
     Example:
-        >>> from torchmocap.body import CapsuleBody
-        >>> from torchmocap.cameras import make_ring_rig
-        >>> from torchmocap.skeleton import human31
-        >>> sk = human31(); body = CapsuleBody(sk).float()
-        >>> ends = body.endpoints(sk(sk.zero_pose((2,))))
-        >>> soft_render_capsules(ends, body.radii, make_ring_rig(4).float(), (32, 24)).shape
+        >>> from torchmocap import body, cameras, skeleton
+        >>> sk = skeleton.human31(); capsules = body.CapsuleBody(sk).float()
+        >>> ends = capsules.endpoints(sk(sk.zero_pose((2,))))
+        >>> rig = cameras.make_ring_rig(4).float()
+        >>> soft_render_capsules(ends, capsules.radii, rig, (32, 24)).shape
         torch.Size([2, 4, 24, 32])
     """
     if endpoints.dim() != 4 or endpoints.shape[-2:] != (2, 3):

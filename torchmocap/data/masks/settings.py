@@ -22,84 +22,94 @@ class MaskError(ValueError):
 
 @dataclass(frozen=True)
 class MaskSettings:
-    """Settings of :func:`~torchmocap.data.masks.compute_masks`.
-
-    Attributes:
-        scale: working resolution as a fraction of the input images (0.25: 1920 → 480 px).
-        median_frames: frames (evenly spaced) whose per-pixel median is the video's own
-            background estimate.
-        register_plates: align each background plate to the video's median with an affine warp
-            and a brightness gain/offset (robust Gauss–Newton, coarse to fine) before use.
-        max_plate_motion: largest corner displacement that registration may find, as a fraction
-            of the image diagonal; beyond it the plate is used unwarped (and the report says so).
-        plate_agreement: the plate and the median agree where their colour difference is below
-            this many noise standard deviations; there the median is used, the plate elsewhere.
-        plate_dilation: the region where the plate replaces the median is grown by this
-            fraction of the image height (the subject's blurred outline).
-        plate_near_subject: with keypoints, the plate replaces the median only near the subject
-            (within ``subject_radius`` of its keypoints' neighbourhood graph in any of the median's
-            frames): elsewhere a disagreement is the plate's own clutter — people, moved
-            objects — and the video's median is the background there. Without keypoints (or
-            when a view has none) the plate is used wherever the two disagree.
-        subject_radius: that distance as a fraction of the subject's extent in the view.
-        threshold: a pixel is foreground when its chromatic distortion (or a brightness change
-            outside the shadow/highlight range) exceeds this many noise standard deviations.
-        min_noise: floor of the per-camera noise standard deviation (grey levels, 0–255).
-        shadow_min: darkest brightness ratio (frame/background along the background colour)
-            still taken for a shadow when the chromaticity is unchanged.
-        highlight_max: brightest such ratio still taken for background.
-        open_size: radius of the morphological opening (fraction of the image height; 0: off).
-        close_size: radius of the morphological closing (fraction of the image height; 0: off).
-        fill_holes: fill holes enclosed by a foreground component.
-        min_area: components smaller than this fraction of the image area are dropped.
-        multiview: intersect each mask with the reprojection of the largest component of the
-            visual hull carved from all views' masks.
-        min_views: voxels of that hull must be inside this many masks (None: C − 1, at least
-            2, so one view's miss does not remove the subject).
-        voxel_size: hull voxel edge (metres).
-        hull_dilation: masks are dilated by this fraction of the image height before carving
-            (tolerance for calibration error; the result is intersected with the undilated masks).
-        hull_margin: the hull is carved in the box around the subject's triangulated keypoints
-            padded by this many metres, and only within this distance of their neighbourhood
-            graph (minimum spanning tree plus nearest neighbours: the limbs; a person beside the
-            subject is not carved with it).
-        hull_extent: without keypoints (or ``bounds``), half-size (metres) of the cube around
-            the point the cameras look at.
-        bounds: ``[[xmin, xmax], [ymin, ymax], [zmin, zmax]]`` world box (metres) for the hull,
-            overriding both; None: automatic.
-        keypoint_gate: keep only mask components that overlap the subject's 2D keypoint box
-            (expanded by ``keypoint_margin``) in that view (needs keypoints; a view without
-            keypoints is left as it is).
-        keypoint_margin: box expansion as a fraction of the box's larger side.
-        min_confidence: keypoints below this confidence are ignored (box, triangulation).
-    """
+    """Settings of :func:`~torchmocap.data.masks.compute_masks` (each documented below)."""
 
     scale: float = 0.25
+    """working resolution as a fraction of the input images (0.25: 1920 → 480 px)."""
     median_frames: int = 25
+    """frames (evenly spaced) whose per-pixel median is the video's own background estimate."""
     register_plates: bool = True
+    """align each background plate to the video's median with an affine warp and a brightness
+    gain/offset (robust Gauss–Newton, coarse to fine) before use.
+    """
     max_plate_motion: float = 0.02
+    """largest corner displacement that registration may find, as a fraction of the image
+    diagonal; beyond it the plate is used unwarped (and the report says so).
+    """
     plate_agreement: float = 4.0
+    """the plate and the median agree where their colour difference is below this many noise
+    standard deviations; there the median is used, the plate elsewhere.
+    """
     plate_dilation: float = 0.004
+    """the region where the plate replaces the median is grown by this fraction of the image
+    height (the subject's blurred outline).
+    """
     plate_near_subject: bool = True
+    """with keypoints, the plate replaces the median only near the subject (within
+    ``subject_radius`` of its keypoints' neighbourhood graph in any of the median's frames):
+    elsewhere a disagreement is the plate's own clutter — people, moved objects — and the
+    video's median is the background there. Without keypoints (or when a view has none) the
+    plate is used wherever the two disagree.
+    """
     subject_radius: float = 0.1
+    """that distance as a fraction of the subject's extent in the view."""
     threshold: float = 4.0
+    """a pixel is foreground when its chromatic distortion (or a brightness change outside the
+    shadow/highlight range) exceeds this many noise standard deviations.
+    """
     min_noise: float = 1.5
+    """floor of the per-camera noise standard deviation (grey levels, 0–255)."""
     shadow_min: float = 0.5
+    """darkest brightness ratio (frame/background along the background colour) still taken for a
+    shadow when the chromaticity is unchanged.
+    """
     highlight_max: float = 1.25
+    """brightest such ratio still taken for background."""
     open_size: float = 0.002
+    """radius of the morphological opening (fraction of the image height; 0: off)."""
     close_size: float = 0.006
+    """radius of the morphological closing (fraction of the image height; 0: off)."""
     fill_holes: bool = True
+    """fill holes enclosed by a foreground component."""
     min_area: float = 0.0005
+    """components smaller than this fraction of the image area are dropped."""
     multiview: bool = True
+    """intersect each mask with the reprojection of the largest component of the visual hull
+    carved from all views' masks.
+    """
     min_views: int | None = None
+    """voxels of that hull must be inside this many masks (None: C − 1, at least 2, so one view's
+    miss does not remove the subject).
+    """
     voxel_size: float = 0.03
+    """hull voxel edge (metres)."""
     hull_dilation: float = 0.004
+    """masks are dilated by this fraction of the image height before carving (tolerance for
+    calibration error; the result is intersected with the undilated masks).
+    """
     hull_margin: float = 0.2
+    """the hull is carved in the box around the subject's triangulated keypoints padded by this
+    many metres, and only within this distance of their neighbourhood graph (minimum spanning
+    tree plus nearest neighbours: the limbs; a person beside the subject is not carved with
+    it).
+    """
     hull_extent: float = 1.5
+    """without keypoints (or ``bounds``), half-size (metres) of the cube around the point the
+    cameras look at.
+    """
     bounds: tuple[tuple[float, float], ...] | None = None
+    """``[[xmin, xmax], [ymin, ymax], [zmin, zmax]]`` world box (metres) for the hull, overriding
+    both; None: automatic.
+    """
     keypoint_gate: bool = True
+    """keep only mask components that overlap the subject's 2D keypoint box (expanded by
+    ``keypoint_margin``) in that view (needs keypoints; a view without keypoints is left as it
+    is).
+    """
     keypoint_margin: float = 0.15
+    """box expansion as a fraction of the box's larger side."""
     min_confidence: float = 0.3
+    """keypoints below this confidence are ignored (box, triangulation)."""
 
     def __post_init__(self) -> None:
         self._check("masks")

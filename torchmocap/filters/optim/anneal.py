@@ -446,15 +446,6 @@ def anneal(
         if callback is not None:
             callback(k, x, v, log_w)
     estimate = mean(x, torch.exp(log_w))
-    return AnnealingResult(
-        estimate=estimate,
-        particles=x,
-        log_weights=log_w,
-        energies=v,
-        best=best,
-        best_energy=best_e,
-        beta=betas,
-        ess=ess,
-        mean_energy=mean_e,
-        min_energy=min_e,
-    )
+    return AnnealingResult(estimate=estimate, particles=x, log_weights=log_w, energies=v,
+                           best=best, best_energy=best_e, beta=betas, ess=ess,
+                           mean_energy=mean_e, min_energy=min_e)

@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import torch
 
+from torchmocap.proposals.bounds import as_bound
+
 __all__ = ["LocalResult", "minimise_local"]
 
 Energy = Callable[[torch.Tensor], torch.Tensor]
@@ -51,18 +53,6 @@ class LocalResult:
     trace: torch.Tensor
     converged: torch.Tensor
     iterations: int
-
-
-def _bounds(b, like: torch.Tensor, name: str, fill: float) -> torch.Tensor:
-    d = like.shape[-1]
-    if b is None:
-        return torch.full((d,), fill, dtype=like.dtype, device=like.device)
-    t = torch.as_tensor(b, dtype=like.dtype, device=like.device)
-    if t.dim() == 0:
-        t = t.expand(d)
-    if t.shape != (d,) or bool(torch.isnan(t).any()):
-        raise ValueError(f"{name}: expected a scalar or a ({d},) tensor without NaN")
-    return t
 
 
 def _value(energy: Energy, x: torch.Tensor, strict: bool) -> torch.Tensor:
@@ -303,8 +293,8 @@ def minimise_local(
         raise ValueError(f"history: expected an int >= 1, got {history!r}")
     if not (lr > 0 and math.isfinite(lr)):
         raise ValueError(f"lr: expected a positive number, got {lr}")
-    lo = _bounds(lower, x0, "lower", -math.inf)
-    hi = _bounds(upper, x0, "upper", math.inf)
+    lo = as_bound(lower, x0, "lower", -math.inf)
+    hi = as_bound(upper, x0, "upper", math.inf)
     if bool((lo > hi).any()):
         raise ValueError("lower: must not exceed upper")
     fn = energy if decode is None else (lambda x: energy(decode(x)))

@@ -1,7 +1,10 @@
 """Resampling for particle filters: multinomial, systematic, stratified and residual.
 
-Every resampler is a pure function ``(log_w (..., N), generator) -> indices (..., N)`` that is
-batched over the leading dims, plus a thin class (``MultinomialResampler`` …) for configs.
+Every resampler is a pure function ``(log_w (..., N), generator=None, num=None) -> indices
+(..., M)`` batched over the leading dims — ``log_w`` unnormalised log weights, ``generator`` the
+only source of randomness, ``num`` the number ``M`` of offspring (default ``N``), the result
+int64 ancestor indices in ``[0, N)`` — plus a thin class (``MultinomialResampler`` …) for
+configs.
 Weights are **unnormalised log weights**; they are normalised in log space (``logsumexp``), so
 energies of any scale are safe. ``-inf`` means "weight zero" and never receives offspring;
 NaN, ``+inf`` and rows without any finite weight are errors.
@@ -29,6 +32,8 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import torch
+
+from torchmocap.filters.optim.components import as_strategy
 
 __all__ = [
     "Resampler",
@@ -150,15 +155,8 @@ def _num(log_w: torch.Tensor, num: int | None) -> int:
 def multinomial_resample(
     log_w: torch.Tensor, generator: torch.Generator | None = None, num: int | None = None
 ) -> torch.Tensor:
-    """Multinomial resampling: ``M`` i.i.d. draws from the categorical ``W``.
-
-    Args:
-        log_w: ``(..., N)`` unnormalised log weights.
-        generator: source of randomness.
-        num: number ``M`` of draws (default ``N``).
-    Returns:
-        ``(..., M)`` int64 ancestor indices in ``[0, N)`` (unsorted).
-    """
+    """Multinomial resampling: ``M`` i.i.d. draws from the categorical ``W`` (indices
+    unsorted; arguments in the module docstring)."""
     check_log_weights(log_w)
     m = _num(log_w, num)
     cdf = _cdf(log_w)
@@ -180,32 +178,16 @@ def _strata_resample(log_w, generator, num, shared_offset: bool) -> torch.Tensor
 def systematic_resample(
     log_w: torch.Tensor, generator: torch.Generator | None = None, num: int | None = None
 ) -> torch.Tensor:
-    """Systematic resampling: one uniform per row, ``u_j = (j + U) / M``.
-
-    Each particle gets ``floor(M·W_i)`` or ``ceil(M·W_i)`` offspring; unbiased.
-
-    Args:
-        log_w: ``(..., N)`` unnormalised log weights.
-        generator: source of randomness.
-        num: number ``M`` of offspring (default ``N``).
-    Returns:
-        ``(..., M)`` int64 ancestor indices, sorted ascending.
-    """
+    """Systematic resampling: one uniform per row, ``u_j = (j + U) / M``; each particle gets
+    ``floor(M·W_i)`` or ``ceil(M·W_i)`` offspring, unbiased (indices sorted ascending)."""
     return _strata_resample(log_w, generator, num, shared_offset=True)
 
 
 def stratified_resample(
     log_w: torch.Tensor, generator: torch.Generator | None = None, num: int | None = None
 ) -> torch.Tensor:
-    """Stratified resampling: one uniform per stratum, ``u_j = (j + U_j) / M``.
-
-    Args:
-        log_w: ``(..., N)`` unnormalised log weights.
-        generator: source of randomness.
-        num: number ``M`` of offspring (default ``N``).
-    Returns:
-        ``(..., M)`` int64 ancestor indices, sorted ascending.
-    """
+    """Stratified resampling: one uniform per stratum, ``u_j = (j + U_j) / M`` (indices sorted
+    ascending)."""
     return _strata_resample(log_w, generator, num, shared_offset=False)
 
 
@@ -215,15 +197,8 @@ def residual_resample(
     """Residual resampling: ``floor(M·W_i)`` deterministic copies, the rest multinomial.
 
     The ``R = M − Σ floor(M·W_i)`` remaining offspring are drawn from the residual weights
-    ``M·W_i − floor(M·W_i)`` (normalised by ``R``) — not filterpy's biased ``W_i − floor(M·W_i)``.
-
-    Args:
-        log_w: ``(..., N)`` unnormalised log weights.
-        generator: source of randomness.
-        num: number ``M`` of offspring (default ``N``).
-    Returns:
-        ``(..., M)`` int64 ancestor indices, sorted ascending.
-    """
+    ``M·W_i − floor(M·W_i)`` (normalised by ``R``) — not filterpy's biased ``W_i − floor(M·W_i)``
+    (indices sorted ascending)."""
     check_log_weights(log_w)
     m = _num(log_w, num)
     n = log_w.shape[-1]
@@ -380,9 +355,5 @@ def as_resampler(resampler: Resampler | Callable[..., torch.Tensor] | None,
                  ) -> Callable[..., torch.Tensor]:
     """``resampler`` itself (a callable ``(log_w, generator) -> indices``), or ``default()`` for
     ``None``. Resamplers are objects: a config chooses one by its ``_target_``."""
-    if resampler is None:
-        return default()
-    if isinstance(resampler, str) or not callable(resampler):
-        raise TypeError(f"{arg}: expected a resampler object such as "
-                        f"torchmocap.filters.SystematicResampler(), got {resampler!r}")
-    return resampler
+    return as_strategy(resampler, arg, default, "resampler object such as "
+                       "torchmocap.filters.SystematicResampler()")

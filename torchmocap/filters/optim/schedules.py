@@ -27,6 +27,8 @@ from typing import NamedTuple, Protocol
 import numpy as np
 import torch
 
+from torchmocap.filters.optim.components import as_strategy
+
 __all__ = [
     "BetaSolution",
     "AnnealingSchedule",
@@ -104,24 +106,6 @@ def _log_ess_fraction(u: torch.Tensor, finite: torch.Tensor, beta: torch.Tensor)
     return (2 * _lse(lw) - _lse(2 * lw))[..., 0] - math.log(n)
 
 
-def _log_ess_fraction_and_slope(neg_u: torch.Tensor, uz: torch.Tensor, log_beta: torch.Tensor
-                                ) -> tuple[torch.Tensor, torch.Tensor]:
-    """``log ESS/N`` at ``β = exp(log_beta)`` and its derivative w.r.t. ``log β``.
-
-    ``neg_u = −u`` (``−inf`` for impossible particles), ``uz = u`` (0 there). With
-    ``w = exp(−β u − max)`` (so ``max w = 1``): ``log ESS/N = 2 log Σw − log Σw² − log N`` and
-    ``d/dβ = 2 (E_{w²}[u] − E_w[u])``.
-    """
-    beta = torch.exp(log_beta)[..., None]
-    lw = beta * neg_u
-    w = (lw - lw.amax(-1, keepdim=True)).exp_()
-    w2 = w * w
-    s1, s2 = w.sum(-1), w2.sum(-1)
-    a1, a2 = (w * uz).sum(-1), (w2 * uz).sum(-1)
-    f = 2 * s1.log() - s2.log() - math.log(uz.shape[-1])
-    return f, 2 * beta[..., 0] * (a2 / s2 - a1 / s1)
-
-
 def ess_fraction_at_beta(energies: torch.Tensor, beta: torch.Tensor | float) -> torch.Tensor:
     """ESS/N of the weights ``exp(−β V)``: ``energies (..., P)``, ``beta (...)`` → ``(...)``
     (float64)."""
@@ -166,58 +150,12 @@ def ess_target_beta(
         raise ValueError(f"alpha: expected a target ESS fraction in (0, 1], got {alpha}")
     if not (beta_max > 0 and math.isfinite(beta_max)):
         raise ValueError(f"beta_max: expected a positive finite number, got {beta_max}")
-    v = energies.to(torch.float64)
-    if v.device.type == "cpu":  # a few hundred values: numpy's per-op cost is ~10x lower
-        beta, frac = _solve_beta_numpy(v.detach().numpy(), float(alpha), beta_max,
-                                       iterations)
-        return BetaSolution(torch.from_numpy(beta), torch.from_numpy(frac))
-    return _solve_beta_torch(v, float(alpha), beta_max, iterations)
-
-
-def _solve_beta_torch(v: torch.Tensor, alpha: float, beta_max: float, iterations: int
-                      ) -> BetaSolution:
-    """:func:`ess_target_beta`'s solver on float64 energies ``v (..., P)`` (any device)."""
-    log_alpha = math.log(alpha)
-    finite = torch.isfinite(v)
-    vmin = torch.where(finite, v, math.inf).amin(dim=-1, keepdim=True)
-    u = torch.where(finite, v - vmin, 0.0)
-    umax = u.amax(dim=-1)
-    batch = v.shape[:-1]
-
-    # bracket: at lo every β·u ≤ 1e-9 (fraction ≈ P_finite/P); hi = beta_max. One pass over a
-    # grid of ``_GRID`` log-β values narrows it to one cell (~1 nat); safeguarded Newton steps
-    # on log β (bisection whenever a step leaves the bracket) then converge quadratically.
-    safe_umax = torch.where(umax > 0, umax, torch.ones_like(umax))
-    lo = torch.log(torch.clamp(1e-9 / safe_umax, max=beta_max * 1e-3))
-    hi = torch.full(batch, math.log(beta_max), dtype=torch.float64, device=v.device)
-    grid = torch.linspace(0.0, 1.0, _GRID, dtype=torch.float64, device=v.device)
-    s = lo[..., None] + (hi - lo)[..., None] * grid  # (..., G) increasing
-    above = _log_ess_fraction(u.unsqueeze(-2), finite.unsqueeze(-2), torch.exp(s)) > log_alpha
-    j = (above.sum(-1, keepdim=True) - 1).clamp(0, _GRID - 2)  # last cell start above target
-    lo, hi = s.gather(-1, j)[..., 0], s.gather(-1, j + 1)[..., 0]
-    x = 0.5 * (lo + hi)
-    uz = torch.where(finite, u, 0.0)
-    neg_u = torch.where(finite, -u, -math.inf)
-    for _ in range(iterations):
-        f, dfds = _log_ess_fraction_and_slope(neg_u, uz, x)
-        g = f - log_alpha
-        lo = torch.where(g > 0, x, lo)
-        hi = torch.where(g > 0, hi, x)
-        done = (g.abs() < 1e-13) | (hi - lo < 1e-13)
-        if bool(done.all()):
-            break
-        step = x - g / dfds
-        ok = torch.isfinite(step) & (step >= lo) & (step <= hi)
-        x = torch.where(done, x, torch.where(ok, step, 0.5 * (lo + hi)))
-    beta = torch.exp(x)
-
-    cap = torch.full_like(beta, beta_max)
-    reaches_cap = _log_ess_fraction(u, finite, cap) >= log_alpha
-    beta = torch.where(reaches_cap, cap, beta)
-    f0 = finite.sum(-1).to(torch.float64) / v.shape[-1]
-    beta = torch.where((f0 <= alpha) & ~reaches_cap, torch.zeros_like(beta), beta)
-    frac = torch.exp(_log_ess_fraction(u, finite, beta))
-    return BetaSolution(beta, frac)
+    # a few hundred values, solved on the host: numpy's per-op cost is ~10x lower than torch's,
+    # and on a GPU the copy costs less than the solver's many tiny kernels
+    v = energies.detach().to(device="cpu", dtype=torch.float64)
+    beta, frac = _solve_beta_numpy(v.numpy(), float(alpha), beta_max, iterations)
+    return BetaSolution(torch.from_numpy(beta).to(energies.device),
+                        torch.from_numpy(frac).to(energies.device))
 
 
 def _log_ess_fraction_np(u: np.ndarray, finite: np.ndarray, beta: np.ndarray) -> np.ndarray:
@@ -231,8 +169,9 @@ def _log_ess_fraction_np(u: np.ndarray, finite: np.ndarray, beta: np.ndarray) ->
 
 def _solve_beta_numpy(v: np.ndarray, alpha: float, beta_max: float, iterations: int
                       ) -> tuple[np.ndarray, np.ndarray]:
-    """The same solver as :func:`_solve_beta_torch` (grid pass, then safeguarded Newton steps on
-    ``log β``) on a float64 array ``v (..., P)``; returns ``beta, ess_fraction (...)``."""
+    """:func:`ess_target_beta`'s solver (a grid pass over ``log β``, then safeguarded Newton
+    steps on ``log β``, bisection whenever a step leaves the bracket) on a float64 array
+    ``v (..., P)``; returns ``beta, ess_fraction (...)``."""
     log_alpha = math.log(alpha)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         finite = np.isfinite(v)
@@ -303,39 +242,47 @@ class ESSSchedule:
         return f"ESSSchedule(alpha={self.alpha})"
 
 
-class PolynomialSchedule:
-    """``β_k = scale · (k + 1)^power`` for layer ``k = 0, 1, …``."""
+class _FixedSchedule:
+    """A schedule whose ``β_k`` depends on the layer index only (not on the energies)."""
 
-    def __init__(self, power: float = 2.0, scale: float = 1.0) -> None:
-        if not scale > 0:
-            raise ValueError(f"scale: expected a positive number, got {scale}")
-        self.power = float(power)
-        self.scale = float(scale)
+    def beta(self, layer: int) -> float:
+        raise NotImplementedError
 
     def __call__(self, layer: int, energies: torch.Tensor | None = None) -> torch.Tensor:
         if layer < 0:
             raise ValueError(f"layer: expected a non-negative index, got {layer}")
-        return torch.tensor(self.scale * (layer + 1) ** self.power, dtype=torch.float64)
+        return torch.tensor(self.beta(layer), dtype=torch.float64)
+
+
+def _positive(name: str, v) -> float:
+    if not v > 0:
+        raise ValueError(f"{name}: expected a positive number, got {v}")
+    return float(v)
+
+
+class PolynomialSchedule(_FixedSchedule):
+    """``β_k = scale · (k + 1)^power`` for layer ``k = 0, 1, …``."""
+
+    def __init__(self, power: float = 2.0, scale: float = 1.0) -> None:
+        self.power = float(power)
+        self.scale = _positive("scale", scale)
+
+    def beta(self, layer: int) -> float:
+        return self.scale * (layer + 1) ** self.power
 
     def __repr__(self) -> str:
         return f"PolynomialSchedule(power={self.power}, scale={self.scale})"
 
 
-class GeometricSchedule:
+class GeometricSchedule(_FixedSchedule):
     """``β_k = beta0 · ratio^k`` for layer ``k = 0, 1, …``."""
 
     def __init__(self, ratio: float = 2.0, beta0: float = 1.0) -> None:
-        if not ratio > 0:
-            raise ValueError(f"ratio: expected a positive number, got {ratio}")
-        if not beta0 > 0:
-            raise ValueError(f"beta0: expected a positive number, got {beta0}")
-        self.ratio = float(ratio)
-        self.beta0 = float(beta0)
+        self.ratio = _positive("ratio", ratio)
+        self.beta0 = _positive("beta0", beta0)
 
-    def __call__(self, layer: int, energies: torch.Tensor | None = None) -> torch.Tensor:
-        if layer < 0:
-            raise ValueError(f"layer: expected a non-negative index, got {layer}")
-        return torch.tensor(self.beta0 * self.ratio**layer, dtype=torch.float64)
+    def beta(self, layer: int) -> float:
+        return self.beta0 * self.ratio**layer
 
     def __repr__(self) -> str:
         return f"GeometricSchedule(ratio={self.ratio}, beta0={self.beta0})"
@@ -344,9 +291,5 @@ class GeometricSchedule:
 def as_schedule(schedule: AnnealingSchedule | None) -> AnnealingSchedule:
     """``schedule`` itself (a callable ``(layer, energies) -> β``), or :class:`ESSSchedule` with
     α = 0.5 for ``None``. Schedules are objects: a config chooses one by its ``_target_``."""
-    if schedule is None:
-        return ESSSchedule()
-    if isinstance(schedule, str) or not callable(schedule):
-        raise TypeError(f"schedule: expected a schedule object such as "
-                        f"torchmocap.filters.ESSSchedule(), got {schedule!r}")
-    return schedule
+    return as_strategy(schedule, "schedule", ESSSchedule,
+                       "schedule object such as torchmocap.filters.ESSSchedule()")

@@ -136,14 +136,8 @@ def sir_step(
     if not bool(torch.isfinite(log_ev)):
         raise ValueError("log_likelihood: every particle has zero likelihood (all -inf)")
     new_lw = inc - log_ev
-    return SIRStep(
-        particles=new,
-        log_weights=new_lw,
-        ancestors=ancestors,
-        resampled=resampled,
-        ess=effective_sample_size(new_lw),
-        log_evidence=log_ev,
-    )
+    return SIRStep(particles=new, log_weights=new_lw, ancestors=ancestors, resampled=resampled,
+                   ess=effective_sample_size(new_lw), log_evidence=log_ev)
 
 
 @dataclass

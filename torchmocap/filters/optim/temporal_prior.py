@@ -27,7 +27,18 @@ from torch import nn
 
 from torchmocap.geometry import wrap_angle
 
-__all__ = ["TemporalPrior", "temporal_prior_precision"]
+__all__ = ["TemporalPrior", "check_prior_stds", "temporal_prior_precision"]
+
+
+def check_prior_stds(std_deg, translation_std, names=("std_deg", "translation_std")
+                     ) -> tuple[float, float]:
+    """The prior's two stds as floats; a typed error naming the setting (``names``) unless
+    both are finite numbers > 0."""
+    for name, v in zip(names, (std_deg, translation_std)):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
+                or v <= 0:
+            raise ValueError(f"{name}: expected a finite number > 0, got {v!r}")
+    return float(std_deg), float(translation_std)
 
 
 def temporal_prior_precision(num_dofs: int, translation_dofs: Sequence[int], std_deg: float,
@@ -35,10 +46,7 @@ def temporal_prior_precision(num_dofs: int, translation_dofs: Sequence[int], std
                              device: torch.device | str | None = None) -> torch.Tensor:
     """``1 / σ² (D,)``: ``σ = radians(std_deg)`` per rotation DoF, ``translation_std`` (metres)
     on ``translation_dofs``."""
-    for name, v in (("std_deg", std_deg), ("translation_std", translation_std)):
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
-                or v <= 0:
-            raise ValueError(f"{name}: expected a finite number > 0, got {v!r}")
+    check_prior_stds(std_deg, translation_std)
     s = torch.full((num_dofs,), math.radians(std_deg), dtype=dtype, device=device)
     if len(translation_dofs):
         s[list(translation_dofs)] = float(translation_std)

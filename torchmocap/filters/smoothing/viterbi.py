@@ -25,12 +25,11 @@ Functional core: :func:`viterbi_path`; module:
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Sequence
 
 import torch
 
-from torchmocap.filters.optim.temporal_prior import TemporalPrior
+from torchmocap.filters.optim.temporal_prior import TemporalPrior, check_prior_stds
 from torchmocap.filters.smoothing.base import Smoother
 
 __all__ = ["ViterbiSmoother", "viterbi_path"]
@@ -86,15 +85,10 @@ class ViterbiSmoother(Smoother):
     def __init__(self, skeleton=None, rotation_std_deg: float = 20.0,
                  translation_std: float = 0.1, emission: str = "energy") -> None:
         super().__init__()
-        for name, v in (("rotation_std_deg", rotation_std_deg),
-                        ("translation_std", translation_std)):
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
-                    or v <= 0:
-                raise ValueError(f"{name}: expected a finite number > 0, got {v!r}")
+        self.rotation_std_deg, self.translation_std = check_prior_stds(
+            rotation_std_deg, translation_std, ("rotation_std_deg", "translation_std"))
         if emission not in EMISSIONS:
             raise ValueError(f"emission: expected one of {EMISSIONS}, got {emission!r}")
-        self.rotation_std_deg = float(rotation_std_deg)
-        self.translation_std = float(translation_std)
         self.emission = emission
         self.translation_dofs = [] if skeleton is None else list(skeleton.translation_dofs)
 

@@ -23,12 +23,10 @@ normalised ``weights`` and the frame's :class:`~torchmocap.proposals.ProposalCon
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import nn
 
-from torchmocap.filters.optim.temporal_prior import TemporalPrior
+from torchmocap.filters.optim.temporal_prior import TemporalPrior, check_prior_stds
 
 __all__ = [
     "BestParticleEstimator",
@@ -172,13 +170,8 @@ class TemporalMapEstimator(Estimator):
     def __init__(self, skeleton=None, rotation_std_deg: float = 20.0,
                  translation_std: float = 0.1) -> None:
         super().__init__()
-        for name, v in (("rotation_std_deg", rotation_std_deg),
-                        ("translation_std", translation_std)):
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
-                    or v <= 0:
-                raise ValueError(f"{name}: expected a finite number > 0, got {v!r}")
-        self.rotation_std_deg = float(rotation_std_deg)
-        self.translation_std = float(translation_std)
+        self.rotation_std_deg, self.translation_std = check_prior_stds(
+            rotation_std_deg, translation_std, ("rotation_std_deg", "translation_std"))
         self.translation_dofs = [] if skeleton is None else list(skeleton.translation_dofs)
 
     def log_scores(self, particles: torch.Tensor, weights: torch.Tensor,
