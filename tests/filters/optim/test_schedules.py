@@ -99,7 +99,7 @@ class TestEssTargetBeta:
                 if alpha * row.shape[-1] < 1.5:  # near ESS = 1, the asymptote: no unique root
                     continue
 
-                def f(log_b):
+                def f(log_b, row=row):
                     return float(ess_fraction_at_beta(row, math.exp(log_b))) - alpha
                 if f(math.log(1e12)) >= 0:  # ties at the minimum keep the ESS above alpha: cap
                     assert beta == 1e12
