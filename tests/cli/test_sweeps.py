@@ -42,7 +42,8 @@ def _compose(overrides):
 def test_submitit_local_launcher_runs_a_sweep(tmp_path):
     sweep = tmp_path / "sweep"
     r = _console("torchmocap-track", ["-m", "hydra/launcher=submitit_local", "seed=0,1",
-                                      "data.clip.frames=3", *TINY, f"hydra.sweep.dir={sweep}"],
+                                      "data.clip.frames=3", "tracker=p", *TINY,
+                                      f"hydra.sweep.dir={sweep}"],
                  tmp_path)
     assert r.returncode == 0, r.stderr[-3000:]
     metrics = sorted(sweep.glob("*/metrics.json"))

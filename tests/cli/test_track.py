@@ -16,7 +16,8 @@ from hydra.core.global_hydra import GlobalHydra
 from torchmocap.cli.track import run
 
 EXE = str(Path(sys.executable).parent / "torchmocap-track")
-SMALL = ["data.clip.frames=4", "tracker.num_particles=20", "tracker.inference.layers=2",
+SMALL = ["tracker=p", "data.clip.frames=4", "tracker.num_particles=20",
+         "tracker.inference.layers=2",
          "+data.scenario_overrides.image_size=[80,60]", "overlays=0", "progress=false"]
 
 
@@ -34,8 +35,10 @@ def _console(args, tmp_path, timeout=600, **env):
 
 def test_defaults():
     cfg = _compose([])
-    assert cfg.tracker.name == "default" and cfg.tracker.num_particles == 200
-    assert cfg.tracker.inference.layers == 15 and cfg.data.scenario == "studio"
+    # the default tracker is LS (local descent; experiments/ponsmoll2010 says why)
+    assert cfg.tracker.name == "default" and cfg.tracker.num_particles == 1
+    assert cfg.tracker.inference._target_ == "torchmocap.filters.LocalInference"
+    assert cfg.tracker.inference.iterations == 40 and cfg.data.scenario == "studio"
     assert cfg.data.clip.path is None and cfg.seed == 0
     assert "file://conf" in cfg.hydra.searchpath if "hydra" in cfg else True
 
@@ -49,7 +52,7 @@ def test_every_clip_setting_is_in_the_default_config():
 
 
 def test_in_process_run_writes_outputs_and_skips_when_up_to_date(tmp_path):
-    cfg = _compose(["data.clip.frames=6", "tracker.num_particles=30",
+    cfg = _compose(["tracker=p", "data.clip.frames=6", "tracker.num_particles=30",
                     "tracker.inference.layers=3", "progress=false", "overlays=2",
                     "data.scenario=clean"])
     m = run(cfg, tmp_path)
@@ -58,7 +61,7 @@ def test_in_process_run_writes_outputs_and_skips_when_up_to_date(tmp_path):
     for key in ("frames", "seconds_per_frame", "orientation_error_deg", "mpjpe_mm",
                 "fingerprint", "ess_final_mean", "energy_mean"):
         assert key in saved
-    assert saved["frames"] == 6 and saved["tracker"] == "default" and saved["layers"] == 3
+    assert saved["frames"] == 6 and saved["tracker"] == "p" and saved["layers"] == 3
     assert set(saved["orientation_error_deg"]["per_bone"]) == {
         "spine", "l_shoulder", "r_shoulder", "l_hip", "r_hip"}
     assert 0 <= saved["orientation_error_deg"]["mean"] < 45
@@ -73,7 +76,7 @@ def test_in_process_run_writes_outputs_and_skips_when_up_to_date(tmp_path):
     assert run(cfg, tmp_path) == saved
     assert (tmp_path / "track.npz").stat().st_mtime_ns == mtime
     # a changed setting reruns it (and changes the fingerprint)
-    cfg2 = _compose(["data.clip.frames=6", "tracker.num_particles=31",
+    cfg2 = _compose(["tracker=p", "data.clip.frames=6", "tracker.num_particles=31",
                      "tracker.inference.layers=3", "progress=false", "overlays=0",
                      "data.scenario=clean"])
     m2 = run(cfg2, tmp_path)
@@ -89,7 +92,8 @@ def test_run_reports_the_do_nothing_baseline_and_beats_it(tmp_path):
     from torchmocap.metrics import orientation_error_deg
     from torchmocap.skeleton import human31
 
-    cfg = _compose(["data.clip.frames=10", "data.clip.fps=8", "tracker.num_particles=40",
+    cfg = _compose(["tracker=p", "data.clip.frames=10", "data.clip.fps=8",
+                    "tracker.num_particles=40",
                     "tracker.inference.layers=4", "progress=false", "overlays=0",
                     "data.scenario=clean"])
     m = run(cfg, tmp_path)
@@ -269,8 +273,11 @@ def test_sweep_survives_a_failing_job(tmp_path, launcher):
     """The issue's sweep: good jobs finish and write metrics.json, the bad ones are reported
     (failure.json, one line each) and the command exits with status 2."""
     sweep = tmp_path / "sweep"
-    r = _console(["-m", "tracker=p,g", "data.clip.path=/nonexistent,null", *SMALL[0:1],
-                  "data.clip.frames=3", *SMALL[1:], f"hydra/launcher={launcher}",
+    # "++": the sweep's base config (the default tracker, LS) has no annealing layers
+    rest = [("++" + s if s.startswith("tracker.") else s) for s in SMALL
+            if not s.startswith(("tracker=", "data.clip.frames="))]
+    r = _console(["-m", "tracker=p,g", "data.clip.path=/nonexistent,null",
+                  "data.clip.frames=3", *rest, f"hydra/launcher={launcher}",
                   "hydra.launcher.n_jobs=2" if launcher == "joblib" else "progress=false",
                   f"hydra.sweep.dir={sweep}"], tmp_path, timeout=900)
     assert r.returncode == 2, r.stderr[-3000:]

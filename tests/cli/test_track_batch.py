@@ -15,7 +15,8 @@ from hydra.core.global_hydra import GlobalHydra
 from torchmocap.cli.batch import batch_seeds
 from torchmocap.cli.track import run
 
-SMALL = ["data.clip.frames=4", "tracker.num_particles=16", "tracker.inference.layers=2",
+SMALL = ["tracker=p", "data.clip.frames=4", "tracker.num_particles=16",
+         "tracker.inference.layers=2",
          "+data.scenario_overrides.image_size=[80,60]", "overlays=0", "progress=false",
          "glb.enabled=false"]
 

@@ -16,7 +16,7 @@ import pytest
 from torchmocap.cli.runs import RunLockError, acquire_lock, release_lock
 
 EXE = str(Path(sys.executable).parent / "torchmocap-track")
-SMALL = ["tracker.num_particles=20", "tracker.inference.layers=2",
+SMALL = ["tracker=p", "tracker.num_particles=20", "tracker.inference.layers=2",
          "+data.scenario_overrides.image_size=[80,60]", "overlays=0", "progress=false"]
 
 
@@ -67,7 +67,7 @@ def test_a_second_run_into_a_busy_directory_is_refused(tmp_path):
         assert first.wait(timeout=600) == 0
     overrides = (d / ".hydra" / "overrides.yaml").read_text()
     assert "tracker=g" not in overrides  # the refused run wrote nothing there
-    assert json.loads((d / "metrics.json").read_text())["tracker"] == "default"
+    assert json.loads((d / "metrics.json").read_text())["tracker"] == "p"
 
 
 @pytest.mark.slow
