@@ -96,3 +96,37 @@ def shared_data() -> Path:
     require_data(DATA_FILES / "mocap")
     require_data(DATA_FILES / "multiview" / "bodytrack_sequenceB_1" / "CALIB")
     return DATA_FILES
+
+
+#: the trimmed pose2sim_balancing recording's cameras and its frames of associated detections
+POSE2SIM_CAMERAS = ("cam01", "cam02", "cam03", "cam04")
+POSE2SIM_FRAMES = 10
+
+
+@pytest.fixture(scope="session")
+def pose2sim_root(shared_data) -> Path:
+    """The trimmed real 4-camera recording (``tests/data_files/multiview/pose2sim_balancing``)."""
+    return require_data(shared_data / "multiview" / "pose2sim_balancing")
+
+
+@pytest.fixture(scope="session")
+def pose2sim_calibrated_rig(pose2sim_root):
+    """Its calibration (``Calib.toml``, read by the project's reader; float64, the calibrated
+    1088x1920 image size of every camera)."""
+    from torchmocap.cameras import read_toml_calibration
+
+    return read_toml_calibration(pose2sim_root / "calibration" / "Calib.toml").double()
+
+
+@pytest.fixture(scope="session")
+def pose2sim_detections(pose2sim_root) -> torch.Tensor:
+    """The subject's BODY_25B detections ``(T=10, C=4, 25, 3)`` (u, v, confidence; full
+    resolution pixels) from the associated OpenPose files, float64."""
+    from torchmocap.io.openpose import read_openpose_json
+
+    rows = []
+    for t in range(POSE2SIM_FRAMES):
+        rows.append(torch.stack([
+            read_openpose_json(pose2sim_root / "pose-associated" / f"{cam}_json" /
+                               f"{cam}.{t:04d}.json", 25)[0] for cam in POSE2SIM_CAMERAS]))
+    return torch.stack(rows).double()

@@ -5,8 +5,6 @@ and agree with Pose2Sim's own triangulation."""
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 import torch
@@ -84,30 +82,12 @@ class TestTriangulateDLT:
         with pytest.raises(ValueError, match="min_views"):
             triangulate_dlt(pix, torch.ones(4, 5), rig, min_views=1)
 
-    def test_real_recording(self, shared_data):
+    def test_real_recording(self, pose2sim_root, pose2sim_calibrated_rig, pose2sim_detections):
         """pose2sim_balancing: the associated BODY_25B detections of frame 0, triangulated from
         the four views, reproject with a median error of ~10 px (OpenPose noise and
         calibration on 1920-pixel images) and lie within a few cm of Pose2Sim's own
         triangulation of the same detections."""
-        import tomllib
-
-        from torchmocap.cameras.calibration import _rodrigues
-
-        root = shared_data / "multiview" / "pose2sim_balancing"
-        calib = tomllib.loads((root / "calibration" / "Calib.toml").read_text())
-        cams = [calib[k] for k in sorted(calib) if k.startswith("cam_")]
-        K = torch.tensor([c["matrix"] for c in cams], dtype=torch.float64)
-        R = torch.stack([_rodrigues(torch.tensor(c["rotation"], dtype=torch.float64))
-                         for c in cams])
-        t = torch.tensor([c["translation"] for c in cams], dtype=torch.float64)
-        dist = torch.tensor([c["distortions"] + [0.0] for c in cams], dtype=torch.float64)
-        rig = CameraRig(K, R, t, [[1088, 1920]] * 4, dist)
-        det = []
-        for c in range(1, 5):
-            f = root / "pose-associated" / f"cam{c:02d}_json" / f"cam{c:02d}.0000.json"
-            people = json.loads(f.read_text())["people"]
-            det.append(np.asarray(people[0]["pose_keypoints_2d"]).reshape(25, 3))
-        det = torch.tensor(np.stack(det))  # (C, 25, 3)
+        root, rig, det = pose2sim_root, pose2sim_calibrated_rig, pose2sim_detections[0]
         X = triangulate_dlt(det[..., :2], det[..., 2], rig)
         seen = (det[..., 2] > 0.3).sum(0) >= 3
         assert int(seen.sum()) >= 20

@@ -4,10 +4,8 @@ noiseless detections, and on the real pose2sim_balancing detections."""
 
 from __future__ import annotations
 
-import json
 import math
 
-import numpy as np
 import pytest
 import torch
 
@@ -157,31 +155,13 @@ class TestLeaveOneCameraOut:
             leave_one_camera_out(_detections(X, _rig(3))[:, :2], _rig(3))
 
 
-def test_real_recording(shared_data):
+def test_real_recording(pose2sim_calibrated_rig, pose2sim_detections):
     """pose2sim_balancing, 10 frames of the associated detections, each view held out in turn
     (detections above 0.3) from a plain 3-view DLT: measured medians 27.8, 14.2, 33.2, 19.3 px
     on 1920-pixel-high images (about twice the 4-view reprojection error: the held-out view is
     an independent check), PCK@0.05 0.83-1.0 and PCK@0.1 0.98-1.0 of the 720-890 px boxes."""
-    import tomllib
-
-    from torchmocap.cameras.calibration import _rodrigues
-
-    root = shared_data / "multiview" / "pose2sim_balancing"
-    calib = tomllib.loads((root / "calibration" / "Calib.toml").read_text())
-    cams = [calib[k] for k in sorted(calib) if k.startswith("cam_")]
-    rig = CameraRig(torch.tensor([c["matrix"] for c in cams], dtype=F64),
-                    torch.stack([_rodrigues(torch.tensor(c["rotation"], dtype=F64))
-                                 for c in cams]),
-                    torch.tensor([c["translation"] for c in cams], dtype=F64),
-                    [[1088, 1920]] * 4,
-                    torch.tensor([c["distortions"] + [0.0] for c in cams], dtype=F64))
-    det = np.zeros((10, 4, 25, 3))
-    for f in range(10):
-        for c in range(4):
-            p = root / "pose-associated" / f"cam{c + 1:02d}_json" / f"cam{c + 1:02d}.{f:04d}.json"
-            det[f, c] = np.asarray(json.loads(p.read_text())["people"][0]["pose_keypoints_2d"]
-                                   ).reshape(25, 3)
-    scores = leave_one_camera_out(torch.tensor(det), rig, min_confidence=0.3)
+    rig, det = pose2sim_calibrated_rig, pose2sim_detections
+    scores = leave_one_camera_out(det, rig, min_confidence=0.3)
     med = [s.median_px for s in scores]
     assert all(5.0 < m < 50.0 for m in med), med
     assert all(s.pck_05 > 0.7 and s.pck_10 > 0.9 for s in scores), [s.summary() for s in scores]

@@ -7,14 +7,12 @@ adult's height and a reprojection error of the order of the triangulation's own.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 
-import numpy as np
 import pytest
 import torch
 
-from torchmocap.cameras import CameraRig, triangulate_dlt
+from torchmocap.cameras import triangulate_dlt
 from torchmocap.ik import SEATED, fit_keypoint_subject
 from torchmocap.skeleton import human31, keypoint_positions, load_keypoint_map
 
@@ -171,28 +169,10 @@ class TestFitKeypointSubject:
 
 
 @pytest.fixture(scope="module")
-def pose2sim(shared_data):
-    """The four calibrated views of pose2sim_balancing (rig from Calib.toml) and the
-    associated BODY_25B detections of its first 10 frames, ``(T, C, 25, 3)``."""
-    import tomllib
-
-    from torchmocap.cameras.calibration import _rodrigues
-
-    root = shared_data / "multiview" / "pose2sim_balancing"
-    calib = tomllib.loads((root / "calibration" / "Calib.toml").read_text())
-    cams = [calib[k] for k in sorted(calib) if k.startswith("cam_")]
-    K = torch.tensor([c["matrix"] for c in cams], dtype=F64)
-    R = torch.stack([_rodrigues(torch.tensor(c["rotation"], dtype=F64)) for c in cams])
-    t = torch.tensor([c["translation"] for c in cams], dtype=F64)
-    dist = torch.tensor([c["distortions"] + [0.0] for c in cams], dtype=F64)
-    rig = CameraRig(K, R, t, [[1088, 1920]] * 4, dist)
-    det = np.zeros((10, 4, 25, 3))
-    for f in range(10):
-        for c in range(4):
-            p = root / "pose-associated" / f"cam{c + 1:02d}_json" / f"cam{c + 1:02d}.{f:04d}.json"
-            det[f, c] = np.asarray(json.loads(p.read_text())["people"][0]["pose_keypoints_2d"]
-                                   ).reshape(25, 3)
-    return rig, torch.tensor(det)
+def pose2sim(pose2sim_calibrated_rig, pose2sim_detections):
+    """The four calibrated views of pose2sim_balancing and the associated BODY_25B detections
+    of its first 10 frames, ``(T, C, 25, 3)``."""
+    return pose2sim_calibrated_rig, pose2sim_detections
 
 
 def test_real_recording(pose2sim):

@@ -11,17 +11,11 @@ import pytest
 import torch
 
 from torchmocap.cameras import CameraRig
-from torchmocap.cameras.calibration import _rodrigues
 
 #: frames used: the trimmed cam01 copy repeats frame 8 at index 9 (its stream copy ends on a
 #: B-frame), so frames 0-8 are the ones all four videos decode identically to the originals
 FRAMES = 9
 CAMERAS = ("cam01", "cam02", "cam03", "cam04")
-
-
-@pytest.fixture(scope="session")
-def pose2sim_root(shared_data):
-    return shared_data / "multiview" / "pose2sim_balancing"
 
 
 @pytest.fixture(scope="session")
@@ -47,17 +41,10 @@ def pose2sim_frames(pose2sim_root):
 
 
 @pytest.fixture(scope="session")
-def pose2sim_rig(pose2sim_root, pose2sim_frames):
+def pose2sim_rig(pose2sim_calibrated_rig, pose2sim_frames):
     """The calibrated rig (Calib.toml) with the decoded image sizes."""
-    import tomllib  # Python 3.11+
-
-    calib = tomllib.loads((pose2sim_root / "calibration" / "Calib.toml").read_text())
-    cams = [calib[k] for k in sorted(calib) if k.startswith("cam_")]
-    K = torch.tensor([c["matrix"] for c in cams], dtype=torch.float64)
-    R = torch.stack([_rodrigues(torch.tensor(c["rotation"], dtype=torch.float64)) for c in cams])
-    t = torch.tensor([c["translation"] for c in cams], dtype=torch.float64)
-    dist = torch.tensor([c["distortions"] + [0.0] for c in cams], dtype=torch.float64)
-    return CameraRig(K, R, t, pose2sim_frames[1], dist, list(CAMERAS))
+    r = pose2sim_calibrated_rig
+    return CameraRig(r.K, r.R, r.t, pose2sim_frames[1], r.dist, list(CAMERAS))
 
 
 @pytest.fixture(scope="session")
@@ -79,11 +66,9 @@ def _people(path) -> list[np.ndarray]:
 
 
 @pytest.fixture(scope="session")
-def pose2sim_keypoints(pose2sim_root):
+def pose2sim_keypoints(pose2sim_detections):
     """The subject's BODY_25B detections ``(T, C, 25, 3)`` (pose-associated)."""
-    out = [[_people(pose2sim_root / "pose-associated" / f"{cam}_json" / f"{cam}.{t:04d}.json")[0]
-            for cam in CAMERAS] for t in range(FRAMES)]
-    return torch.tensor(np.array(out))
+    return pose2sim_detections[:FRAMES]
 
 
 @pytest.fixture(scope="session")
