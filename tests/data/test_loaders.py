@@ -342,3 +342,31 @@ def test_exception_malformed_scenario_names_file_and_line(tmp_path):
     with pytest.raises(ValueError, match=r"mine\.yaml: not a text file \(byte 0x89 at offset "
                                          r"0 is not UTF-8\); expected a scenario file"):
         synthesized_sequence(_clip(), str(p), FAST, seed=0)
+
+
+def test_exception_skeleton_with_zero_bone_lengths(tmp_path):
+    """A body model whose offsets are zero ('rest offset has zero length, no direction' deep in
+    the subject fit before) is refused naming the setting and the joints."""
+    def zero(spec):
+        for j in spec["joints"]:
+            j["offset"] = [0.0, 0.0, 0.0]
+
+    path = _human31_yaml(tmp_path, zero)
+    with pytest.raises(DataConfigError, match=r"^data\.skeleton: .* joints \['spine', 'neck', "
+                                              r".* have a zero offset"):
+        synthesized_sequence(_clip(), "clean", FAST, seed=0, skeleton=str(path))
+
+
+def test_exception_asf_with_zero_bone_lengths(tmp_path, shared_data):
+    import re
+    import shutil
+
+    from torchmocap.io import MotionFormatError
+
+    shutil.copy(shared_data / "mocap" / "cmu" / "01_01.amc", tmp_path / "01_01.amc")
+    text = (shared_data / "mocap" / "cmu" / "01.asf").read_text(encoding="latin-1")
+    text = re.sub(r"(?m)^(\s{3,}length) [\d.]+\s*$", r"\1 0", text)  # bones, not the unit
+    (tmp_path / "01.asf").write_text(text, encoding="latin-1")
+    with pytest.raises(MotionFormatError, match=r"01_01\.amc: the subject's ankle-head chain "
+                                                r"measures 0 m: its offsets \(bone lengths\)"):
+        synthesized_sequence(_clip(path=str(tmp_path / "01_01.amc")), "clean", FAST, seed=0)

@@ -66,6 +66,10 @@ def body_model(skeleton: str | None = None):
         sk = Skeleton.from_yaml(path)
     except Exception as e:  # malformed YAML or skeleton spec
         raise DataConfigError(f"data.skeleton: cannot read a skeleton from {path}: {e}") from e
+    zero = [n for n, o in zip(sk.joint_names[1:], sk.offsets[1:]) if float(o.norm()) == 0.0]
+    if zero:  # a bone's direction is its rest offset: the subject fit needs every one
+        raise DataConfigError(f"data.skeleton: {path}: joints {zero} have a zero offset; every "
+                              "bone needs a rest direction (human31's offsets scaled, not zeroed)")
     for what, got, want in (("joints", sk.joint_names, ref.joint_names),
                             ("DoFs", sk.dof_names, ref.dof_names)):
         if list(got) != list(want):
