@@ -356,7 +356,9 @@ def test_frames_whose_imu_samples_are_all_dropped_have_no_evidence(walk):
     assert [i.no_evidence for i in track.infos] == [[], [], ["imu"], ["imu"], ["imu"], []]
     with pytest.warns(EvaluationWarning, match="without usable evidence.*imu 3"):
         assert summarize_diagnostics(track.infos)["frames_without_evidence"] == {"imu": 3}
-    # with the orientation term in the likelihood, that term reports it (once)
-    gs = _tracker(walk, "gs", ["tracker.num_particles=10", "tracker.inference.layers=1"])
-    track = gs.run(seq6, theta0=theta[0], progress=False)
-    assert [i.no_evidence for i in track.infos][2:5] == [["orientation"]] * 3
+    # with the orientation term in the likelihood, that term reports it (once: also where the
+    # proposal reads the IMUs too, as in p_refined)
+    for preset in ("gs", "p_refined"):
+        tr = _tracker(walk, preset, ["tracker.num_particles=10", "tracker.inference.layers=1"])
+        track = tr.run(seq6, theta0=theta[0], progress=False)
+        assert [i.no_evidence for i in track.infos][2:5] == [["orientation"]] * 3, preset

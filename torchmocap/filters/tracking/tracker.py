@@ -215,10 +215,12 @@ class Tracker(nn.Module):
         self.body_fit = body_fit
         self.smoother = None if smoother is None else _check_component(smoother, Smoother,
                                                                         "smoother")
-        # IMU samples read outside the likelihood (a sensor-manifold proposal): a frame whose
-        # samples are all dropped is reported like a likelihood term without evidence
-        self._imu_outside_likelihood = any(not u.startswith("likelihood")
-                                           for u in self._users_of("imu"))
+        # IMU samples read by the proposal or estimator only (P's sensor-manifold proposal): a
+        # frame whose samples are all dropped is reported like a likelihood term without
+        # evidence (an orientation term in the likelihood reports it itself)
+        users = self._users_of("imu")
+        self._imu_outside_likelihood = bool(users) and not any(
+            u.startswith("likelihood") for u in users)
         if smoother is not None:
             smoother.check(self.inference)
 
