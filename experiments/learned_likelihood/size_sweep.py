@@ -1,6 +1,6 @@
 """Model-size sweep: candidate-set metrics on the validation clips (HDM05 bk) and energy cost.
 
-    torchmocap-train -m term.hidden=4,8,16 epochs=6 progress=false \
+    torchmocap-train -m training_set=mocap term.hidden=4,8,16 epochs=6 progress=false \
         hydra.sweep.dir=outputs/train/size_sweep 'hydra.sweep.subdir=h${term.hidden}'
     python experiments/learned_likelihood/size_sweep.py outputs/train/size_sweep/h*/weights.pt
 
@@ -31,11 +31,13 @@ def main(files: list[str]) -> None:
     from torchmocap.likelihoods import LearnedFeatureLikelihood, Poses
     from torchmocap.likelihoods.learned import read_weights
 
-    cfg = OmegaConf.load(Path(__import__("torchmocap").__file__).parent / "conf" / "train.yaml")
+    conf = Path(__import__("torchmocap").__file__).parent / "conf"
+    cfg = OmegaConf.load(conf / "train.yaml")
+    clips = OmegaConf.load(conf / "training_set" / "mocap.yaml")
     n = OmegaConf.to_container(cfg.data.negatives)
     n["scales"] = tuple(n["scales"])
     n["overrides"] = tuple(n.get("overrides") or ())
-    val = load_clip_set(OmegaConf.to_container(cfg.data.val_clips), ["outdoor"], [0],
+    val = load_clip_set(OmegaConf.to_container(clips.val_clips), ["outdoor"], [0],
                         NegativeSettings(**n), "outputs/train_cache", progress=False)
 
     def rank(a):

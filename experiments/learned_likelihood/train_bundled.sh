@@ -8,10 +8,10 @@
 set -euo pipefail
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 OUT=${OUT:-outputs/train/bundled}
-torchmocap-train epochs=8 progress=false hydra.run.dir=$OUT/round1
-torchmocap-train epochs=8 progress=false hydra.run.dir=$OUT/round2 \
+torchmocap-train training_set=mocap epochs=8 progress=false hydra.run.dir=$OUT/round1
+torchmocap-train training_set=mocap epochs=8 progress=false hydra.run.dir=$OUT/round2 \
   init_weights=$OUT/round1/weights.pt \
   "data.mining={overrides:['likelihood@tracker.likelihood=silhouette_learned','tracker.likelihood.terms.learned.weights=$PWD/$OUT/round1/weights.pt']}" \
   export=torchmocap/assets/learned/learned_features.pt
-torchmocap-train term=learned_render epochs=2 objective.max_negatives=12 progress=false \
+torchmocap-train training_set=mocap term=learned_render epochs=2 objective.max_negatives=12 progress=false \
   hydra.run.dir=$OUT/render export=torchmocap/assets/learned/learned_render.pt

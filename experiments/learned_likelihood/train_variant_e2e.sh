@@ -6,6 +6,6 @@
 set -euo pipefail
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 B=${B:-outputs/train/bundled}
-torchmocap-train objective.name=both epochs=4 optim.lr=0.001 progress=false \
+torchmocap-train training_set=mocap objective.name=both epochs=4 optim.lr=0.001 progress=false \
   hydra.run.dir=outputs/train/variant_e2e init_weights=$B/round2/weights.pt \
   "data.mining={overrides:['likelihood@tracker.likelihood=silhouette_learned','tracker.likelihood.terms.learned.weights=$PWD/$B/round1/weights.pt']}"

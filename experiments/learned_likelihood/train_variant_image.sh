@@ -6,7 +6,7 @@
 set -euo pipefail
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 OUT=${OUT:-outputs/train/variant_image}
-opts=(objective.base_likelihood=image objective.err_rotation=0.1 epochs=8 progress=false)
+opts=(training_set=mocap objective.base_likelihood=image objective.err_rotation=0.1 epochs=8 progress=false)
 torchmocap-train "${opts[@]}" hydra.run.dir=$OUT/round1
 torchmocap-train "${opts[@]}" hydra.run.dir=$OUT/round2 init_weights=$OUT/round1/weights.pt \
   "data.mining={overrides:['likelihood@tracker.likelihood=image_learned','tracker.likelihood.terms.learned.weights=$PWD/$OUT/round1/weights.pt']}"

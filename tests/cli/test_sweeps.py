@@ -146,3 +146,15 @@ def test_tune_without_training_clips_fails_cleanly(tmp_path):
                  tmp_path)
     assert r.returncode == 2
     assert "tune.train_clips" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_tune_with_an_unknown_direction_fails_cleanly(tmp_path):
+    """``tune.direction=sideways`` printed an error at the end of the run and exited 0; now it
+    is refused before any clip is tracked."""
+    r = _console("torchmocap-tune", ["tune.direction=sideways", *TINY,
+                                     f"hydra.run.dir={tmp_path / 'r'}"], tmp_path)
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "tune.direction: expected 'minimize' or 'maximize', got " \
+        "'sideways'" in lines[0]
+    assert not list((tmp_path / "r").rglob("metrics.json"))  # nothing was tracked

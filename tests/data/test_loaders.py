@@ -263,3 +263,110 @@ def test_feature_clip_name_follows_the_file(tmp_path):
     seq = synthesized_sequence(_clip(name=BUNDLED_CLIP_NAME, path=str(other)), "clean", FAST,
                                seed=0)
     assert seq.meta["clip"]["name"] == "my_take"
+
+
+def _scaled_offsets(tmp_path, factor: float, bom: bool = False) -> Path:
+    """A copy of the bundled walk with every OFFSET times ``factor`` (and a UTF-8 BOM)."""
+    import re
+
+    from torchmocap.data.loaders import bundled_clip_path
+
+    text = bundled_clip_path().read_text()
+    text = re.sub(r"(OFFSET )([^\n]*)", lambda m: m.group(1) + " ".join(
+        repr(float(v) * factor) for v in m.group(2).split()), text)
+    p = tmp_path / f"walk_{factor:g}.bvh"
+    p.write_bytes((b"\xef\xbb\xbf" if bom else b"") + text.encode())
+    return p
+
+
+@pytest.mark.parametrize("factor, size", [(1e6, r"1422 km"), (0.0, r"0 m: its offsets "
+                                                                       r"\(bone lengths\) are "
+                                                                       r"all zero")])
+def test_exception_subject_of_no_person_size(tmp_path, factor, size):
+    """Offsets x 1e6 were tracked as a 1,424 km subject (exit 0, 12.18 deg); all-zero offsets
+    died of 'cannot convert float NaN to integer' in the renderer. Both are refused before any
+    fitting, naming the file and the unit setting."""
+    import re
+
+    from torchmocap.io import MotionFormatError
+
+    p = _scaled_offsets(tmp_path, factor)
+    with pytest.raises(MotionFormatError, match=rf"{re.escape(p.name)}: the subject's ankle-"
+                                                rf"head chain measures {size}.*set "
+                                                r"data\.clip\.unit"):
+        synthesized_sequence(_clip(path=str(p)), "clean", FAST, seed=0)
+
+
+def test_feature_byte_order_mark_is_read(tmp_path):
+    """A BVH saved with a UTF-8 byte-order mark was refused ('found \\ufeffHIERARCHY')."""
+    a = synthesized_sequence(_clip(), "clean", FAST, seed=0)
+    b = synthesized_sequence(_clip(path=str(_scaled_offsets(tmp_path, 1.0, bom=True))),
+                             "clean", FAST, seed=0)
+    torch.testing.assert_close(b.ground_truth.positions, a.ground_truth.positions)
+
+
+def test_exception_asf_with_a_bvh_clip(shared_data):
+    with pytest.raises(DataConfigError, match=r"^data\.clip\.asf: only an \.amc clip"):
+        synthesized_sequence(_clip(asf=str(shared_data / "mocap" / "cmu" / "01.asf")), "clean",
+                             FAST, seed=0)
+
+
+def test_exception_frame_rate_above_the_bound():
+    """(A million fps, the audit's case, is run by the command-line test under a memory limit:
+    before the bound it exhausted the machine.)"""
+    with pytest.raises(DataConfigError, match=r"^data\.clip\.fps: expected at most 1000 fps"):
+        synthesized_sequence(_clip(fps=1001), "clean", FAST, seed=0)
+
+
+def test_exception_synthesis_that_cannot_fit_in_memory(monkeypatch):
+    """Every frame of a clip with images and masks, more than the memory available (10 MB
+    here: 200 frames of four 160x120 views need 61 MB): refused before the resampling and the
+    synthesis, naming the settings."""
+    import torchmocap.memory as m
+
+    monkeypatch.setattr(m, "available_memory", lambda device=None: 10**7)
+    small = {"depth.enabled": False, "joints2d.enabled": False, "image_size": [160, 120]}
+    with pytest.raises(m.MemoryBudgetError, match=r"^data\.clip\.fps / data\.clip\.frames: "
+                                                  r"\d+ frames of the motion at 50 fps and "
+                                                  r"the images of 20\d frames of 4 160x120"):
+        synthesized_sequence(_clip(fps=50, frames=None), "clean", small, seed=0)
+
+
+def test_exception_malformed_scenario_names_file_and_line(tmp_path):
+    p = tmp_path / "mine.yaml"
+    p.write_text("name: mine\nrig: ring4\nimage_size: [320, 240\nfps: 25\n")
+    with pytest.raises(ValueError, match=r"^scenario: .*mine\.yaml: not valid YAML \(line 4, "
+                                         r"column 4: expected ',' or '\]'"):
+        synthesized_sequence(_clip(), str(p), FAST, seed=0)
+    p.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00binary")
+    with pytest.raises(ValueError, match=r"mine\.yaml: not a text file \(byte 0x89 at offset "
+                                         r"0 is not UTF-8\); expected a scenario file"):
+        synthesized_sequence(_clip(), str(p), FAST, seed=0)
+
+
+def test_exception_skeleton_with_zero_bone_lengths(tmp_path):
+    """A body model whose offsets are zero ('rest offset has zero length, no direction' deep in
+    the subject fit before) is refused naming the setting and the joints."""
+    def zero(spec):
+        for j in spec["joints"]:
+            j["offset"] = [0.0, 0.0, 0.0]
+
+    path = _human31_yaml(tmp_path, zero)
+    with pytest.raises(DataConfigError, match=r"^data\.skeleton: .* joints \['spine', 'neck', "
+                                              r".* have a zero offset"):
+        synthesized_sequence(_clip(), "clean", FAST, seed=0, skeleton=str(path))
+
+
+def test_exception_asf_with_zero_bone_lengths(tmp_path, shared_data):
+    import re
+    import shutil
+
+    from torchmocap.io import MotionFormatError
+
+    shutil.copy(shared_data / "mocap" / "cmu" / "01_01.amc", tmp_path / "01_01.amc")
+    text = (shared_data / "mocap" / "cmu" / "01.asf").read_text(encoding="latin-1")
+    text = re.sub(r"(?m)^(\s{3,}length) [\d.]+\s*$", r"\1 0", text)  # bones, not the unit
+    (tmp_path / "01.asf").write_text(text, encoding="latin-1")
+    with pytest.raises(MotionFormatError, match=r"01_01\.amc: the subject's ankle-head chain "
+                                                r"measures 0 m: its offsets \(bone lengths\)"):
+        synthesized_sequence(_clip(path=str(tmp_path / "01_01.amc")), "clean", FAST, seed=0)

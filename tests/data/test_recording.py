@@ -226,6 +226,18 @@ class TestImageFolders:
         fast = load_recording(root, fps=30, masks="none", stop=1)
         assert fast.fps == 30.0 and fast.silhouettes is None and fast.meta["masks"] is None
 
+    def test_feature_zero_one_masks(self, tmp_path, shared_data):
+        """Masks written as 0/1 (numpy booleans) were read as empty (foreground above 127)."""
+        import numpy as np
+        from PIL import Image
+
+        root = self._recording(tmp_path, shared_data, frames=1)
+        want = load_recording(root, fps=30, scale=0.5).silhouettes
+        for p in root.glob("masks/*/*.png"):
+            Image.fromarray((np.asarray(Image.open(p)) > 127).astype(np.uint8)).save(p)
+        got = load_recording(root, fps=30, scale=0.5).silhouettes
+        assert torch.equal(got, want) and 0.03 < float(got.float().mean()) < 0.1
+
     def test_exception_masks(self, tmp_path, shared_data):
         root = self._recording(tmp_path, shared_data, frames=2)
         (root / "masks" / "cam2" / "mask_0001.png").unlink()

@@ -187,3 +187,29 @@ class TestNumberedFiles:
             numbered_files(tmp_path, (".png",))
         with pytest.raises(FrameSourceError, match=r"nope: no such folder"):
             numbered_files(tmp_path / "nope", (".png",))
+
+
+@pytest.mark.parametrize("levels, fg", [
+    ((0, 255), 255), ((0, 1), 1), ((0, 2), 2), ((0, 100), 100), ((0,), None), ((7,), 7),
+])
+def test_read_mask_binary_levels(tmp_path, levels, fg):
+    """A mask of at most two grey levels, one of them 0, is binary whatever its foreground."""
+    from torchmocap.io.frames import read_mask
+
+    a = np.full((6, 8), levels[0], np.uint8)
+    a[2:4, 3:6] = levels[-1]
+    Image.fromarray(a).save(tmp_path / "m.png")
+    got = read_mask(tmp_path / "m.png", (8, 6))
+    assert got.dtype == bool and np.array_equal(got, a == fg if fg is not None else a > 0)
+
+
+def test_read_mask_grey_levels_and_size(tmp_path):
+    """More levels (antialiased edges): foreground above 127; another size is refused."""
+    from torchmocap.io.frames import read_mask
+
+    a = np.array([[0, 3, 127, 128, 200, 255]], np.uint8)
+    Image.fromarray(a).save(tmp_path / "m.png")
+    assert read_mask(tmp_path / "m.png").tolist() == [[False] * 3 + [True] * 3]
+    with pytest.raises(FrameSourceError, match=r"m\.png: mask is 6x1, the camera's frames are "
+                                               r"6x2"):
+        read_mask(tmp_path / "m.png", (6, 2))

@@ -280,3 +280,18 @@ def test_resolve_and_explicit_map_for_amc(cmu):
     assert resolve_skeleton_map(clip).family == "hdm05_asf"
     assert resolve_skeleton_map(clip, "cmu_asf").family == "cmu_asf"
     assert resolve_skeleton_map(["a", "b"]) is None
+
+
+def test_exception_binary_or_malformed_map_file(tmp_path):
+    """A binary file given as a skeleton map failed with a bare UTF-8 decode error, a malformed
+    one with a multi-line YAML report whose first line named nothing."""
+    p = tmp_path / "mine.yaml"
+    p.write_bytes(b"family: x\n\xbf\xff\x00")
+    with pytest.raises(SkeletonMapError, match=r"mine\.yaml: not a text file \(byte 0xbf at "
+                                               r"offset 10 is not UTF-8\); expected a skeleton "
+                                               r"map"):
+        load_skeleton_map(p)
+    p.write_text("family: x\njoints: {pelvis: Hips\nbones: [a]\n")
+    with pytest.raises(SkeletonMapError, match=r"^\S*mine\.yaml: not valid YAML \(line 3, "
+                                               r"column 6: "):
+        load_skeleton_map(p)

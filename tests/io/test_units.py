@@ -134,3 +134,33 @@ def test_feature_ambiguous_sizes_are_reported(tmp_path, chain, unit, alt):
         assert got.unit == pytest.approx(unit, rel=1e-12) and not guess.child_sized
     else:  # the child in cm is read as an adult in inches: said, not silent
         assert guess.name == "in" and guess.alternatives == (("cm", 0.01),)
+
+
+@pytest.mark.parametrize("scale, error", [(1.0, None), (0.7, "warn"), (100.0, "large"),
+                                          (0.1, "small"), (0.0, "zero")])
+def test_check_subject_size(scale, error):
+    """A person's ankle-head chain passes (a child's with a warning); a size no unit error
+    could make human — x100, x0.1, all zero — is refused naming the unit setting."""
+    from torchmocap.io import MotionFormatError
+    from torchmocap.io.units import check_subject_size
+
+    clip = unseen_family_clip("mixamo")
+    clip.offsets = clip.offsets * scale
+    clip.unit, clip.source_path = 0.01, "mine.bvh"
+    h = chain_height(clip)
+    if error is None:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert check_subject_size(clip, unit_setting="data.clip.unit") == pytest.approx(h)
+    elif error == "warn":
+        with pytest.warns(UserWarning, match=r"mine\.bvh: .* a child's size; if the subject is "
+                                             r"an adult, set data\.clip\.unit"):
+            check_subject_size(clip, unit_setting="data.clip.unit")
+    else:
+        what = {"zero": r"0 m: its offsets \(bone lengths\) are all zero",
+                "small": rf"{h * 1000:.4g} mm with 0\.01 m per file unit"}.get(
+                    error, rf"{h:.4g} m with 0\.01 m per file unit")
+        with pytest.raises(MotionFormatError, match=rf"^mine\.bvh: the subject's ankle-head "
+                                                    rf"chain measures {what}; .*set "
+                                                    r"data\.clip\.unit"):
+            check_subject_size(clip, unit_setting="data.clip.unit")

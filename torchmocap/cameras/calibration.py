@@ -65,10 +65,9 @@ def _rodrigues(r: torch.Tensor) -> torch.Tensor:
 
 
 def _read_bouguet_values(path: Path) -> tuple[list[float], list[int]]:
-    try:
-        text = path.read_text()
-    except OSError as e:
-        raise CameraError(f"{path}: cannot read calibration file ({e})") from e
+    from torchmocap.inputs import read_text_input
+
+    text = read_text_input(path, CameraError, "Bouguet calibration (.cal: one number per line)")
     values, lines = [], []
     for lineno, line in enumerate(text.splitlines(), 1):
         for tok in line.split():
@@ -300,23 +299,22 @@ def load_rig_file(path: str | os.PathLike) -> Any:
     Raises:
         CameraError: naming the file (and line) when it cannot be read or parsed.
     """
+    from torchmocap.inputs import read_text_input, yaml_error_line
+
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as e:
-        raise CameraError(f"{path}: cannot read ({e})") from e
+    text = read_text_input(path, CameraError, "rig or calibration file (JSON or YAML)")
     try:
         if path.suffix.lower() == ".json":
             return json.loads(text)
         if text.startswith("%YAML:"):
             text = text.split("\n", 1)[1] if "\n" in text else ""
         return yaml.load(text, Loader=_OpenCVLoader)  # noqa: S506 - safe loader subclass
-    except (json.JSONDecodeError, yaml.YAMLError) as e:
-        line = getattr(e, "lineno", None)
-        mark = getattr(e, "problem_mark", None)
-        if mark is not None:
-            line = mark.line + 1
-        raise CameraError(f"{path}:{line}: cannot parse ({e})") from e
+    except json.JSONDecodeError as e:
+        raise CameraError(f"{path}:{e.lineno}: cannot parse ({e.msg})") from e
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None) or getattr(e, "context_mark", None)
+        line = "" if mark is None else f":{mark.line + 1}"
+        raise CameraError(f"{path}{line}: cannot parse ({yaml_error_line(e, False)})") from e
 
 
 def write_rig(rig: CameraRig, path: str | os.PathLike) -> Path:

@@ -137,12 +137,13 @@ def read_toml_calibration(path: str | os.PathLike, unit: str | float = "m") -> C
         CameraError: naming the file and camera table for a parse error, a missing or malformed
             field, a fisheye camera, or a file without cameras.
     """
+    from torchmocap.inputs import read_text_input
+
     path = Path(path)
+    text = read_text_input(path, CameraError, "TOML calibration")
     try:
-        data = tomllib.loads(path.read_text())
-    except OSError as e:
-        raise CameraError(f"{path}: cannot read ({e})") from e
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
         raise CameraError(f"{path}: not a valid TOML file ({e})") from e
     rigs = []
     for key, table in data.items():
@@ -258,7 +259,10 @@ def bouguet_calibration_files(folder: str | os.PathLike) -> list[tuple[int, Path
             gap in the numbers (a missing ``Camera2.cal`` between 1 and 3 is named; pairing by
             position would give camera 2 the third file's calibration).
     """
+    from torchmocap.inputs import note_input
+
     folder = Path(folder)
+    note_input(folder)  # the files there decide the pairing
     files = sorted(p for p in folder.glob("*") if p.suffix.lower() == ".cal" and p.is_file())
     if not files:
         raise CameraError(f"{folder}: no Bouguet calibration files (*.cal)")
@@ -310,9 +314,12 @@ def calibration_files(folder: str | os.PathLike) -> dict[str, list[Path]]:
     """The calibrations a folder holds, by kind: ``"toml"`` (``*.toml`` files),
     ``"intri/extri"`` (``intri.yml`` and ``extri.yml``, or ``.yaml``) and ``"bouguet"``
     (``*.cal`` files); empty when it holds none (or is not a folder)."""
+    from torchmocap.inputs import note_input
+
     folder = Path(folder)
     if not folder.is_dir():
         return {}
+    note_input(folder)  # a calibration added there changes what is read
     found: dict[str, list[Path]] = {}
     tomls = sorted(p for p in folder.glob("*.toml") if p.is_file())
     if tomls:

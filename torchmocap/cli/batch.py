@@ -31,7 +31,12 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from torchmocap.cli.runs import config_fingerprint, read_json, write_json_atomic
+from torchmocap.cli.runs import (
+    completed_run,
+    config_fingerprint,
+    run_fingerprint,
+    write_json_atomic,
+)
 
 __all__ = ["batch_fingerprint", "batch_seeds", "run_batch"]
 
@@ -112,7 +117,7 @@ def run_batch(cfg: DictConfig, out: Path) -> dict:
     from torchmocap.assembly import Runtime, build_tracker
     from torchmocap.cli.jobs import finish, thread_policy, validate_tracker
     from torchmocap.cli.outputs import print_summary, validate_outputs
-    from torchmocap.cli.runs import load_sequence
+    from torchmocap.cli.runs import load_sequence, reported_warnings
     from torchmocap.filters.tracking.batched import BatchGroup, track_groups
 
     seeds = batch_seeds(cfg)
@@ -125,11 +130,10 @@ def run_batch(cfg: DictConfig, out: Path) -> dict:
         cs = _seed_config(cfg, s)
         fp = batch_fingerprint(cfg, s)
         so = out / f"seed_{s}"
-        done = read_json(so / "metrics.json")
-        if isinstance(done, dict) and done.get("fingerprint") == fp and \
-                cfg.get("skip_completed", True):
-            print(f"torchmocap-track: {so} is complete and up to date (fingerprint {fp}); "
-                  "skipped", file=sys.stderr)
+        done = completed_run(so, fp) if cfg.get("skip_completed", True) else None
+        if done is not None:
+            print(f"torchmocap-track: {so} is complete and up to date (fingerprint "
+                  f"{done['fingerprint']}); skipped", file=sys.stderr)
             runs[s] = done
             continue
         for stale in ("failure.json", "metrics.json"):
@@ -145,27 +149,30 @@ def run_batch(cfg: DictConfig, out: Path) -> dict:
             print("torchmocap-track: batch_seeds: the observations are synthesised with the "
                   "run's seed, so each seed tracks its own sequence (energies not batched); "
                   "set data.seed=<n> to track one sequence with every seed", file=sys.stderr)
-        jobs, groups = [], []
-        built: dict[str, tuple] = {}  # one sequence, runtime and tracker per sequence key
-        for (s, cs, fp, so), key in zip(todo, keys):
-            if key not in built:
-                seq = load_sequence(cs, min_frames=2)
-                runtime = Runtime.from_sequence(seq)
-                tracker = build_tracker(cs.tracker, runtime, seed=s)
-                tracker.check_sequence(seq)
-                built[key] = (seq, runtime, tracker)
-            seq, runtime, tracker = built[key]
-            groups.append(BatchGroup(tracker, seq, seed=s))
-            jobs.append((s, cs, fp, so, seq, runtime, tracker))
-        tracks = track_groups(groups, progress=bool(cfg.get("progress", True)),
-                              callbacks=[governor])
+        with reported_warnings("torchmocap-track") as warned:
+            jobs, groups = [], []
+            built: dict[str, tuple] = {}  # one sequence, runtime and tracker per sequence key
+            for (s, cs, fp, so), key in zip(todo, keys):
+                if key not in built:
+                    seq = load_sequence(cs, min_frames=2)
+                    runtime = Runtime.from_sequence(seq)
+                    tracker = build_tracker(cs.tracker, runtime, seed=s)
+                    tracker.check_sequence(seq)
+                    built[key] = (seq, runtime, tracker)
+                seq, runtime, tracker = built[key]
+                groups.append(BatchGroup(tracker, seq, seed=s))
+                jobs.append((s, cs, fp, so, seq, runtime, tracker))
+            tracks = track_groups(groups, progress=bool(cfg.get("progress", True)),
+                                  callbacks=[governor])
         batch = {"seeds": seeds, "size": len(groups), "shared_sequence": shared}
         for (s, cs, fp, so, seq, runtime, tracker), track in zip(jobs, tracks):
             so.mkdir(parents=True, exist_ok=True)
             _write_hydra_records(so, cs, s)
             tracker.seed = s  # the seed of this track (metrics, checkpoints)
-            runs[s] = finish(cs, so, seq, runtime, tracker, track, fp,
-                             {"threads": governor.summary(), "batch": batch})
+            inputs = seq.meta["inputs"]
+            runs[s] = finish(cs, so, seq, runtime, tracker, track, run_fingerprint(fp, inputs),
+                             {"threads": governor.summary(), "batch": batch, "inputs": inputs,
+                              "warnings": warned})
             print(f"seed {s} ({so}):")
             print_summary(runs[s])
     summary = {"batch_seeds": seeds,

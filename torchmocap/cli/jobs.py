@@ -30,21 +30,21 @@ def thread_policy(cfg):
 
 def validate_tracker(cfg) -> None:
     """Build the tracker once against a stand-in subject (human31, four cameras, the paper's
-    five tracking IMUs): a bad setting fails in a fraction of a second, before the data is
-    loaded, fitted and synthesised."""
+    five tracking IMUs): a bad setting — also a particle count whose particle sets cannot fit
+    in memory — fails in a fraction of a second, before the data is loaded, fitted and
+    synthesised."""
     from torchmocap.assembly import Runtime, build_tracker
     from torchmocap.body import CapsuleBody
     from torchmocap.cameras import make_ring_rig
+    from torchmocap.filters.tracking.tracker import check_seed, check_working_memory
     from torchmocap.ik import SensorManifold
     from torchmocap.skeleton import human31
 
-    seed = cfg.get("seed")
-    if isinstance(seed, bool) or not isinstance(seed, int):
-        raise ValueError(f"seed: expected an integer, got {seed!r}")
+    seed = check_seed(cfg.get("seed"))
     sk = human31()
     stand_in = Runtime(skeleton=sk, body=CapsuleBody(sk).float(), rig=make_ring_rig(4).float(),
                        manifold=SensorManifold(sk))
-    build_tracker(cfg.tracker, stand_in, seed=seed)
+    check_working_memory([build_tracker(cfg.tracker, stand_in, seed=seed)])
 
 
 def finish(cfg, out: Path, seq, runtime, tracker, track, fingerprint: str,

@@ -145,9 +145,10 @@ def _write_glb(path, seq, runtime, theta, glb) -> None:
 
 
 def print_summary(m: dict) -> None:
-    """The run's summary table on stdout (the metrics as JSON when there is no truth)."""
+    """The run's summary table on stdout (the metrics as JSON when there is no truth, without
+    the clip and the input files' digests)."""
     if "orientation_error_deg" not in m:
-        print(json.dumps({k: v for k, v in m.items() if k != "clip"}, indent=2))
+        print(json.dumps({k: v for k, v in m.items() if k not in ("clip", "inputs")}, indent=2))
         return
     o = m["orientation_error_deg"]
     rows = [("tracker", m["tracker"]), ("scenario", m.get("scenario")), ("frames", m["frames"]),

@@ -1,10 +1,15 @@
 """What the Hydra commands share: sequences from the ``data`` node, run fingerprints, atomic
 JSON, failure records and the sweep status.
 
-* A run's **fingerprint** hashes its resolved config (without ``progress``), the package's code
-  and configs, and the content of every file the ``data`` node names. A run directory whose
-  ``metrics.json`` carries the same fingerprint is complete and up to date: rerunning the same
-  sweep into the same directory skips it, and a changed setting, data file or code reruns it.
+* A run's **fingerprint** hashes its resolved config (without ``progress``), the package's code,
+  configs and bundled assets, the content of every file the ``data`` and ``tracker`` nodes name,
+  and the content of every input file its data source read (:mod:`torchmocap.inputs`: the ASF
+  beside an AMC, a scenario's ``base:`` chain, every video, image, mask and keypoint file of a
+  recording, and the listings of the folders searched for them). ``metrics.json`` records those
+  inputs with their digests; a run directory whose ``metrics.json`` has the fingerprint that
+  this config and the recorded inputs give now is complete and up to date
+  (:func:`completed_run`): rerunning the same sweep into the same directory skips it, and a
+  changed setting, input file or code reruns it. ``docs/reliability.md`` has the details.
 * A failing job writes ``failure.json`` (the error and its traceback) into its own directory,
   prints one line on stderr and — in a multirun — lets the sweep go on;
   :class:`SweepStatus` (a Hydra callback) counts this sweep's failures at its end, and the
@@ -22,6 +27,8 @@ import sys
 import tempfile
 import time
 import traceback
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -32,14 +39,19 @@ __all__ = [
     "RunLockError",
     "SweepStatus",
     "acquire_lock",
+    "check_added_settings",
     "release_lock",
     "code_fingerprint",
+    "completed_run",
     "config_fingerprint",
     "console_main",
     "hydra_task",
     "is_multirun",
     "load_sequence",
     "read_json",
+    "reported_warnings",
+    "run_fingerprint",
+    "sequence_cache_dir",
     "write_failure",
     "write_json_atomic",
 ]
@@ -86,18 +98,20 @@ def read_json(path: Path) -> Any | None:
 
 @functools.lru_cache(maxsize=1)
 def code_fingerprint() -> str:
-    """SHA-256 of the package's Python sources and packaged configs (sorted by path)."""
+    """SHA-256 of the package's files — Python sources, packaged configs and bundled assets
+    (the default clip, body mesh and learned weights) — sorted by path."""
     root = Path(__file__).resolve().parents[1]
     h = hashlib.sha256()
     for p in sorted(root.rglob("*")):
-        if p.suffix in (".py", ".yaml") and "__pycache__" not in p.parts:
+        if p.is_file() and "__pycache__" not in p.parts and p.suffix != ".pyc":
             h.update(str(p.relative_to(root)).encode())
             h.update(p.read_bytes())
     return h.hexdigest()[:16]
 
 
 def _file_hashes(node) -> dict[str, str]:
-    """Content hashes of the existing files a config node names (clips, scenario YAMLs)."""
+    """Content hashes of the existing files a config node names (clips, scenario YAMLs,
+    weights)."""
     from omegaconf import OmegaConf
 
     out: dict[str, str] = {}
@@ -119,28 +133,83 @@ def _file_hashes(node) -> dict[str, str]:
 
 
 def config_fingerprint(cfg, exclude: tuple[str, ...] = ("progress", "threads")) -> str:
-    """Fingerprint of a run: resolved config (minus ``exclude`` keys and ``hydra``), the code,
-    and the content of the data files the config names. ``threads`` is left out: how many
-    cores a run used says nothing about what it computed."""
+    """Fingerprint of a run's settings: resolved config (minus ``exclude`` keys and
+    ``hydra``), the code, and the content of the files the ``data`` and ``tracker`` nodes
+    name. ``threads`` is left out: how many cores a run used says nothing about what it
+    computed. The files a data source finds and reads by itself join it in
+    :func:`run_fingerprint`."""
     from omegaconf import OmegaConf
 
     c = OmegaConf.to_container(cfg, resolve=True)
     for k in exclude + ("hydra",):
         c.pop(k, None)
-    blob = json.dumps({"config": c, "code": code_fingerprint(),
-                       "files": _file_hashes(c.get("data", {}))}, sort_keys=True, default=str)
+    named = {k: _file_hashes(c.get(k, {})) for k in ("data", "tracker")}
+    blob = json.dumps({"config": c, "code": code_fingerprint(), "files": named},
+                      sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def run_fingerprint(settings: str, inputs: dict[str, str] | None) -> str:
+    """The fingerprint of a run: its settings' fingerprint (:func:`config_fingerprint`) and
+    the digests of the input files its data source read (``Sequence.meta["inputs"]``)."""
+    blob = json.dumps({"settings": settings, "inputs": inputs or {}}, sort_keys=True)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def completed_run(out: Path, settings: str) -> dict | None:
+    """``out/metrics.json`` when the run there is complete and up to date: written with the
+    settings fingerprint ``settings`` and input files whose content is unchanged (the digests
+    of the files it recorded in ``inputs`` are taken again); None otherwise."""
+    from torchmocap.inputs import file_digest
+
+    done = read_json(Path(out) / "metrics.json")
+    if not isinstance(done, dict) or not isinstance(done.get("inputs"), dict):
+        return None
+    now = {p: file_digest(p) for p in done["inputs"]}
+    return done if done.get("fingerprint") == run_fingerprint(settings, now) else None
+
+
+def sequence_cache_dir(cfg) -> Path | None:
+    """The ``sequence_cache`` directory (created when missing), or None when unset.
+
+    Raises:
+        NotADirectoryError: the setting names an existing file, or a directory that cannot be
+            created or written.
+    """
+    cache = cfg.get("sequence_cache")
+    if not cache:
+        return None
+    d = Path(str(cache)).expanduser()
+    if d.exists() and not d.is_dir():
+        raise NotADirectoryError(f"sequence_cache: {d} is a file; expected a directory (or "
+                                 "null: no cache)")
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise NotADirectoryError(f"sequence_cache: cannot create the directory {d} "
+                                 f"({e.strerror or e})") from None
+    if not os.access(d, os.W_OK | os.X_OK):
+        raise NotADirectoryError(f"sequence_cache: the directory {d} is not writable")
+    return d
 
 
 def load_sequence(cfg, min_frames: int = 2):
     """Build the ``data`` node (a sequence source with ``_target_``; its ``seed`` defaults to
-    the run's). With ``sequence_cache: <dir>`` in the config, the sequence is saved under
-    ``<dir>/<fingerprint of the data node, the code and the data files>`` and read back by later
-    runs with the same data settings (e.g. every tracker and seed of a sweep)."""
+    the run's), noting every file it reads: ``meta["inputs"]`` holds their digests
+    (:mod:`torchmocap.inputs`).
+
+    With ``sequence_cache: <dir>`` in the config, the sequence is saved under
+    ``<dir>/<fingerprint of the data node, the code and the files it names>`` and read back by
+    later runs with the same data settings (e.g. every tracker and seed of a sweep) while the
+    input files it was built from are unchanged; otherwise it is rebuilt and replaced. A cache
+    entry that cannot be written is reported with a warning (the run goes on uncached)."""
+    import warnings
+
     from hydra.utils import get_object
     from omegaconf import OmegaConf
 
     from torchmocap.assembly import _accepts, build
+    from torchmocap.inputs import changed_inputs, input_log
 
     extra = {}
     fn = get_object(cfg.data._target_)
@@ -148,27 +217,58 @@ def load_sequence(cfg, min_frames: int = 2):
         extra["seed"] = int(cfg.seed)
     if _accepts(fn, "min_frames")[0]:
         extra["min_frames"] = min_frames
-    cache = cfg.get("sequence_cache")
+    cache = sequence_cache_dir(cfg)
     key = None
-    if cache:
+    if cache is not None:
         from torchmocap.data import Sequence, SequenceFormatError
 
         node = OmegaConf.to_container(cfg.data, resolve=True)
         blob = json.dumps({"data": node, "extra": extra, "code": code_fingerprint(),
                            "files": _file_hashes(node)}, sort_keys=True, default=str)
-        key = Path(str(cache)).expanduser() / hashlib.sha256(blob.encode()).hexdigest()[:16]
+        key = cache / hashlib.sha256(blob.encode()).hexdigest()[:16]
         if (key / "manifest.json").is_file():
             try:
-                return Sequence.load(key)
+                seq = Sequence.load(key)
             except (SequenceFormatError, OSError, ValueError):
-                pass  # unreadable: rebuild and replace it
-    seq = build(cfg.data, None, _path="data", **extra)
+                seq = None  # unreadable: rebuild and replace it
+            inputs = None if seq is None else seq.meta.get("inputs")
+            if isinstance(inputs, dict) and not changed_inputs(inputs):
+                return seq
+    with input_log() as log:
+        seq = build(cfg.data, None, _path="data", **extra)
+    seq.meta["inputs"] = log.digests()
     if key is not None:
         try:
             seq.save(key, overwrite=True)
-        except OSError:  # another job of the sweep is writing the same entry
-            pass
+        except OSError as e:
+            if not (key / "manifest.json").is_file():  # not another job's entry of the sweep
+                warnings.warn(f"sequence_cache: cannot write {key} ({e.strerror or e}); the "
+                              "sequence is not cached", stacklevel=2)
     return seq
+
+
+@contextmanager
+def reported_warnings(command: str) -> Iterator[list[str]]:
+    """Show each warning (a ``UserWarning``: a sanity check, a guessed unit) raised inside the
+    block once, when it is raised, as one line ``<command>: warning: <message>`` on stderr, and
+    collect the messages (for the run's ``metrics.json``); other categories are shown as
+    usual."""
+    import warnings
+
+    seen: list[str] = []
+    with warnings.catch_warnings():
+        shown = warnings.showwarning
+
+        def show(message, category, filename, lineno, file=None, line=None):
+            if not issubclass(category, UserWarning):
+                return shown(message, category, filename, lineno, file, line)
+            text = " ".join(str(message).split())
+            if text not in seen:
+                seen.append(text)
+                print(f"{command}: warning: {text}", file=sys.stderr)
+
+        warnings.showwarning = show
+        yield seen
 
 
 def write_failure(out: Path, error: BaseException, fingerprint: str | None, command: str) -> str:
@@ -293,9 +393,50 @@ def is_multirun() -> bool:
     return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
 
 
+def check_added_settings(cfg, command: str) -> None:
+    """Refuse a setting added on the command line with ``+`` that the command does not read.
+
+    ``+overlay=5`` (a typo of ``overlays``) would otherwise add a key nothing reads, and the
+    run would silently ignore it. A key under a component (a node with ``_target_``:
+    ``+tracker.foo``, ``+data.scenario_overrides.<key>``) is left to the component, which
+    checks its own arguments; config groups chosen with ``+`` (``+experiment=...``,
+    ``+tune=default``) are choices, not settings. Does nothing outside a Hydra run.
+
+    Raises:
+        KeyError: naming the key, with the closest existing setting when there is one.
+    """
+    import difflib
+
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from omegaconf import DictConfig, OmegaConf
+
+    if not HydraConfig.initialized():
+        return
+    hc = HydraConfig.get()
+    choices = set(hc.runtime.choices)
+    for o in OverridesParser.create().parse_overrides([str(x) for x in hc.overrides.task]):
+        key = o.key_or_group
+        if not o.is_add() or key in choices or f"{key}@{o.package}" in choices or \
+                key.split(".")[0] == "hydra":
+            continue
+        parts = key.split(".")
+        parents = [OmegaConf.select(cfg, ".".join(parts[:i])) for i in range(1, len(parts))]
+        if any(isinstance(n, DictConfig) and "_target_" in n for n in parents):
+            continue  # a component's argument: it checks its own
+        siblings = parents[-1] if parents else cfg
+        known = [k for k in siblings if k != parts[-1]] if isinstance(siblings, DictConfig) \
+            else []
+        near = difflib.get_close_matches(parts[-1], known, n=1)
+        hint = f" (did you mean {'.'.join([*parts[:-1], near[0]])}?)" if near else ""
+        raise KeyError(f"{key}: not a setting of {command}{hint}; an added key (+{key}) that "
+                       "nothing reads would be ignored")
+
+
 def hydra_task(command: str, failed: Any = None, fingerprint=None):
     """Decorator of a Hydra command's body ``fn(cfg, out) -> value`` (``out``: the job's
-    directory) giving it the commands' error contract.
+    directory) giving it the commands' error contract (and refusing added settings that the
+    command does not read, :func:`check_added_settings`).
 
     A raised error writes ``out/failure.json`` (the error, its traceback and, when
     ``fingerprint(cfg)`` is given, the run's fingerprint) and prints
@@ -313,6 +454,7 @@ def hydra_task(command: str, failed: Any = None, fingerprint=None):
             out = Path(HydraConfig.get().runtime.output_dir)
             multirun = is_multirun()
             try:
+                check_added_settings(cfg, command)
                 return fn(cfg, out)
             except Exception as e:
                 fp = None

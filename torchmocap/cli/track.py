@@ -11,7 +11,8 @@ an animation of the overlays (``video.enabled``) and an animated skinned body (`
 the images, videos and GLB are written atomically too. A failure prints one line on stderr, writes
 ``failure.json`` and exits with status 2; in a multirun the other jobs go on and the command
 exits with status 2 at the end if any job failed. A run directory whose ``metrics.json`` has the
-same fingerprint (config, code, data files) is skipped as up to date.
+same fingerprint (config, code, and every input file the data source read, unchanged) is
+skipped as up to date (:func:`~torchmocap.cli.runs.completed_run`).
 """
 
 from __future__ import annotations
@@ -27,12 +28,14 @@ from torchmocap.cli.batch import run_batch
 from torchmocap.cli.jobs import finish, thread_policy, validate_tracker
 from torchmocap.cli.outputs import print_summary, validate_outputs
 from torchmocap.cli.runs import (
+    completed_run,
     config_fingerprint,
     console_main,
     hydra_task,
     is_multirun,
     load_sequence,
-    read_json,
+    reported_warnings,
+    run_fingerprint,
 )
 
 __all__ = ["main", "run"]
@@ -54,15 +57,15 @@ def _sequence_fingerprint(seq) -> str:
 def run(cfg: DictConfig, out: Path) -> dict:
     """Run the configured job; returns the metrics written to ``out/metrics.json``."""
     from torchmocap.assembly import Runtime, build_tracker
+    from torchmocap.filters.tracking.tracker import check_checkpoint
 
     if cfg.get("batch_seeds"):  # several seeds in one process: one run dir per seed
         return run_batch(cfg, out)
-    fingerprint = config_fingerprint(cfg)
-    done = read_json(out / "metrics.json")
-    if isinstance(done, dict) and done.get("fingerprint") == fingerprint and \
-            cfg.get("skip_completed", True):
-        print(f"torchmocap-track: {out} is complete and up to date (fingerprint {fingerprint}); "
-              "skipped", file=sys.stderr)
+    settings = config_fingerprint(cfg)
+    done = completed_run(out, settings) if cfg.get("skip_completed", True) else None
+    if done is not None:
+        print(f"torchmocap-track: {out} is complete and up to date (fingerprint "
+              f"{done['fingerprint']}); skipped", file=sys.stderr)
         return done
     # a rerun in place: the old records must not outlive this run's config
     for stale in ("failure.json", "metrics.json"):
@@ -70,28 +73,40 @@ def run(cfg: DictConfig, out: Path) -> dict:
     governor = thread_policy(cfg)
     validate_tracker(cfg)  # settings errors before any loading, fitting or synthesis
     validate_outputs(cfg)
-    seq = load_sequence(cfg, min_frames=2)
-    runtime = Runtime.from_sequence(seq)
-    try:
-        tracker = build_tracker(cfg.tracker, runtime, seed=cfg.seed)
-        tracker.check_sequence(seq)
-    except ValueError as e:
-        hint = seq.meta.get("suggested_tracker")
-        if hint and cfg.tracker.get("name") != hint:
-            raise type(e)(f"{e} (this data is tracked with tracker={hint})") from e
-        raise
-    ckpt = cfg.get("checkpoint")
-    if ckpt:  # relative: to the working directory of a single run, to each job's directory
-        ckpt = Path(str(ckpt)).expanduser()
-        if not ckpt.is_absolute():
-            ckpt = (out if is_multirun() else Path.cwd()) / ckpt
-        ckpt = str(ckpt)
-    track = tracker.run(seq, progress=bool(cfg.get("progress", True)), checkpoint=ckpt,
-                        checkpoint_every=int(cfg.get("checkpoint_every", 10)),
-                        fingerprint=f"{fingerprint}-{_sequence_fingerprint(seq)}",
-                        callbacks=[governor])
+    ckpt = _checkpoint_path(cfg, out)
+    every = cfg.get("checkpoint_every", 10)
+    check_checkpoint(ckpt, every)
+    with reported_warnings("torchmocap-track") as warned:
+        seq = load_sequence(cfg, min_frames=2)
+        inputs = seq.meta["inputs"]
+        fingerprint = run_fingerprint(settings, inputs)
+        runtime = Runtime.from_sequence(seq)
+        try:
+            tracker = build_tracker(cfg.tracker, runtime, seed=cfg.seed)
+            tracker.check_sequence(seq)
+        except ValueError as e:
+            hint = seq.meta.get("suggested_tracker")
+            if hint and cfg.tracker.get("name") != hint:
+                raise type(e)(f"{e} (this data is tracked with tracker={hint})") from e
+            raise
+        track = tracker.run(seq, progress=bool(cfg.get("progress", True)), checkpoint=ckpt,
+                            checkpoint_every=every,
+                            fingerprint=f"{fingerprint}-{_sequence_fingerprint(seq)}",
+                            callbacks=[governor])
     return finish(cfg, out, seq, runtime, tracker, track, fingerprint,
-                  {"threads": governor.summary()})
+                  {"threads": governor.summary(), "inputs": inputs, "warnings": warned})
+
+
+def _checkpoint_path(cfg, out: Path) -> str | None:
+    """The ``checkpoint`` file: relative to the working directory of a single run, to each
+    job's directory in a multirun."""
+    ckpt = cfg.get("checkpoint")
+    if not ckpt:
+        return None
+    ckpt = Path(str(ckpt)).expanduser()
+    if not ckpt.is_absolute():
+        ckpt = (out if is_multirun() else Path.cwd()) / ckpt
+    return str(ckpt)
 
 
 @hydra.main(config_path="../conf", config_name="track", version_base="1.3")

@@ -6,6 +6,10 @@ and runs :class:`~torchmocap.learning.trainer.Trainer`. Outputs in the run direc
 ``metrics.csv``, ``tb/`` (TensorBoard), ``checkpoints/last.pt`` and ``best.pt`` (resumable with
 ``resume=<file>``), ``weights.pt`` (the best network, weights only; ``export=<path>`` writes a
 copy, e.g. into ``torchmocap/assets/learned/``) and ``summary.json``.
+
+The default clips (``training_set: bundled``) are the packaged walk, so the command runs from
+any directory; ``training_set=mocap`` trains on the real HDM05 and CMU clips (from the
+repository root).
 """
 
 from __future__ import annotations
@@ -27,13 +31,12 @@ def run(cfg: DictConfig, out: Path) -> dict:
 
     from torchmocap.assembly import build
     from torchmocap.cli.runs import write_json_atomic
+    from torchmocap.filters.tracking.tracker import check_seed
     from torchmocap.learning import NegativeSettings, load_clip_set
     from torchmocap.learning.trainer import EndToEndSettings, Trainer, TrainSettings
     from torchmocap.likelihoods.learned import LearnedLikelihood
 
-    seed = cfg.seed
-    if isinstance(seed, bool) or not isinstance(seed, int):
-        raise ValueError(f"seed: expected an integer, got {seed!r}")
+    seed = check_seed(cfg.seed)
     o = cfg.objective
     settings = TrainSettings(
         objective=str(o.name), err_scale=float(o.err_scale),
@@ -56,7 +59,9 @@ def run(cfg: DictConfig, out: Path) -> dict:
     common = dict(scenarios=list(d.scenarios), seeds=list(d.seeds), negatives=neg,
                   cache_dir=d.cache_dir, progress=bool(cfg.progress),
                   scenario_overrides=OmegaConf.to_container(d.scenario_overrides, resolve=True))
-    clips = OmegaConf.to_container(d.train_clips, resolve=True)
+    clips = OmegaConf.to_container(d.train_clips, resolve=True) if d.train_clips else []
+    if not isinstance(clips, list) or not clips:
+        raise ValueError(f"data.train_clips: expected a list of at least one clip, got {clips!r}")
     val_clips = OmegaConf.to_container(d.val_clips, resolve=True) if d.val_clips else []
     train = load_clip_set(clips, **common)
     mining = cfg.data.get("mining")

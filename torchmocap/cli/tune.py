@@ -119,6 +119,14 @@ def _json_safe(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
+def _direction(tune) -> str:
+    """``tune.direction``, checked: ``minimize`` or ``maximize``."""
+    direction = (tune or {}).get("direction", "minimize")
+    if direction not in ("minimize", "maximize"):
+        raise ValueError(f"tune.direction: expected 'minimize' or 'maximize', got {direction!r}")
+    return str(direction)
+
+
 def _worst(cfg) -> float:
     """The worst objective value (a failed trial): a sweeper such as Optuna goes on."""
     tune = cfg.get("tune") or {}
@@ -133,6 +141,7 @@ def _hydra_main(cfg: DictConfig, out: Path) -> float:
     hc = HydraConfig.get()
     if "tune" not in cfg:
         raise ValueError("tune: no tune settings (select them with +tune=default)")
+    _direction(cfg.tune)  # before any clip is tracked
     clips = _check_clips("tune.train_clips", cfg.tune.train_clips)
     _check_clips("tune.heldout_clips", cfg.tune.get("heldout_clips"))
     if not clips:
@@ -196,9 +205,7 @@ def heldout_report(config: DictConfig, root: Path) -> dict[str, Any] | None:
         return None
     tune = config.tune
     objective = str(tune.get("objective", "orientation_error_deg.mean"))
-    direction = str(tune.get("direction", "minimize"))
-    if direction not in ("minimize", "maximize"):
-        raise ValueError(f"tune.direction: expected 'minimize' or 'maximize', got {direction!r}")
+    direction = _direction(tune)
     ok = [t for t in trials if isinstance(t.get("objective"), (int, float))]
     report: dict[str, Any] = {"objective_key": objective, "direction": direction,
                               "trials": len(trials), "failed_trials": len(trials) - len(ok),

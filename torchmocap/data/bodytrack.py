@@ -7,16 +7,31 @@ The loader carves the masks' visual hull, scales a human31 to the hull's height 
 tracking skeleton, ``meta["subject_skeleton"]``) and places standing candidate poses at the hull's
 centre, one per heading (``meta["initial_poses"]``) — what a tracker with
 ``refine_first_frame`` starts from (``tracker=real_frame``). No ground truth.
+
+Masks are read by :func:`~torchmocap.io.frames.read_mask` (binary 0/N masks of any foreground
+value N). Implausible inputs are reported: a view whose mask is more than half foreground (a
+whole person covers 4-8 % of bodytrack's views: inverted or all-foreground masks) and a hull
+whose height puts the subject outside the skeleton's scale range (the scale is then held at the
+bound: masks or calibrations wrong, e.g. swapped) each give a warning; an empty hull is an error
+that names each view's foreground.
 """
 
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 
 import torch
 
-__all__ = ["load_bodytrack", "load_bodytrack_sequence"]
+__all__ = ["SCALE_RANGE", "load_bodytrack", "load_bodytrack_sequence"]
+
+#: the subject's height (human31 at 1.75 m) scaled to the hull within this range
+SCALE_RANGE = (0.85, 1.15)
+#: a view whose mask has more foreground than this is reported (inverted or all foreground)
+MAX_FOREGROUND = 0.5
+#: human31's standing height (metres) that the hull's top is compared with
+_HEIGHT = 1.75
 
 
 def _frame_file(folder: Path) -> Path | None:
@@ -40,10 +55,13 @@ def load_bodytrack(root: str | Path, scale: float = 1.0):
     from PIL import Image, UnidentifiedImageError
 
     from torchmocap.cameras import bouguet_calibration_files, read_bouguet_rig
+    from torchmocap.inputs import note_input
+    from torchmocap.io.frames import read_mask
 
     root = Path(root)
     if not root.is_dir():
         raise FileNotFoundError(f"data.path: no such folder: {root}")
+    note_input(root)  # its CAM<i>/FG<i> folders decide the cameras
     if not any((root / "CALIB").glob("*.cal")):
         raise FileNotFoundError(f"data.path: no CALIB/Camera*.cal under {root}")
     if not (isinstance(scale, (int, float)) and 0 < scale <= 4):
@@ -62,24 +80,32 @@ def load_bodytrack(root: str | Path, scale: float = 1.0):
         if img is None or fg is None:
             raise FileNotFoundError(f"data.path: camera {i} image or mask (CAM{i}/FG{i}/"
                                     f"image0000.bmp or .png) missing in {root}")
+        for f in (img, fg):
+            note_input(f.parent)  # image0000.bmp or .png: what is there decides
+        note_input(img)
         try:
             a = Image.open(img).convert("L")
-            m = Image.open(fg).convert("L")
         except (UnidentifiedImageError, OSError) as e:
-            raise ValueError(f"data.path: cannot read camera {i}'s image or mask: {e}") from None
+            raise ValueError(f"data.path: cannot read camera {i}'s image: {e}") from None
         want = tuple(int(v) for v in rig.image_size[c].tolist())
-        if a.size != want or m.size != want:
-            raise ValueError(f"data.path: camera {i}: image {a.size} / mask {m.size} differ from "
-                             f"the calibrated image size {want}")
+        if a.size != want:
+            raise ValueError(f"data.path: camera {i}: image {a.size} differs from the "
+                             f"calibrated image size {want}")
+        m = Image.fromarray(read_mask(fg, want))
         if scale != 1.0:
             size = (round(a.width * scale), round(a.height * scale))
             a = a.resize(size, Image.BILINEAR)
             m = m.resize(size, Image.NEAREST)
         imgs.append(torch.from_numpy(np.asarray(a).copy()))
-        masks.append(torch.from_numpy(np.asarray(m) > 127))
+        masks.append(torch.from_numpy(np.asarray(m).copy()))
     if scale != 1.0:
         rig = rig.scaled_images(scale)
     return rig, torch.stack(imgs), torch.stack(masks)
+
+
+def _numbers(rig) -> list[str]:
+    """The camera numbers of a bodytrack rig (``Camera3`` -> ``3``)."""
+    return [n.removeprefix("Camera") for n in rig.names]
 
 
 def load_bodytrack_sequence(path: str | Path, scale: float = 1.0, headings: int = 12,
@@ -101,14 +127,30 @@ def load_bodytrack_sequence(path: str | Path, scale: float = 1.0, headings: int 
         raise ValueError(f"data.headings: expected an int >= 1, got {headings!r}")
     root = Path(str(path)).expanduser().absolute()
     rig, images, masks = load_bodytrack(root, float(scale))
+    fg = masks.flatten(1).float().mean(1).tolist()
+    views = ", ".join(f"FG{n} {100 * f:.1f} %" for n, f in zip(_numbers(rig), fg))
+    full = [f"FG{n}" for n, f in zip(_numbers(rig), fg) if f > MAX_FOREGROUND]
+    if full:
+        warnings.warn(f"data.path: the masks of {', '.join(full)} are more than "
+                      f"{100 * MAX_FOREGROUND:.0f} % foreground ({views}); a whole person covers "
+                      f"a few % of a view: inverted (person black) or all-foreground masks?",
+                      stacklevel=2)
     hull = visual_hull(rig.double(), masks, [[-3, 3], [-3, 3], [-0.1, 2.3]], float(voxel))
     pts = hull.largest_component().centers()
     if pts.shape[0] == 0:
-        raise ValueError("data.path: the visual hull of the masks is empty (calibration or masks "
-                         "wrong)")
+        raise ValueError(f"data.path: the visual hull of the masks is empty: no point of the "
+                         f"room is foreground in every view (foreground read: {views}); masks "
+                         f"empty, or a calibration of other cameras ({root})")
     top = float(pts[:, 2].max())
     centre = pts.mean(0)
-    size = min(max(top / 1.75, 0.85), 1.15)
+    lo, hi = SCALE_RANGE
+    size = min(max(top / _HEIGHT, lo), hi)
+    if size != top / _HEIGHT:
+        warnings.warn(f"data.path: the visual hull is {top:.2f} m tall, a subject "
+                      f"{top / _HEIGHT:.2f} x human31's {_HEIGHT} m, outside the scale range "
+                      f"[{lo}, {hi}]: the skeleton is held at {size}; the masks (inverted, all "
+                      f"foreground) or the calibrations (swapped, of other cameras) are likely "
+                      f"wrong ({views})", stacklevel=2)
     sk = human31().with_bone_lengths(scale=size)
     base = sk.zero_pose(dtype=torch.float32)
     base[0], base[1] = float(centre[0]), float(centre[1])

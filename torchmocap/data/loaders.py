@@ -59,10 +59,17 @@ def body_model(skeleton: str | None = None):
     path = _path(skeleton, "data.skeleton")
     if path is None:
         return ref
+    from torchmocap.inputs import note_input
+
+    note_input(path)
     try:
         sk = Skeleton.from_yaml(path)
     except Exception as e:  # malformed YAML or skeleton spec
         raise DataConfigError(f"data.skeleton: cannot read a skeleton from {path}: {e}") from e
+    zero = [n for n, o in zip(sk.joint_names[1:], sk.offsets[1:]) if float(o.norm()) == 0.0]
+    if zero:  # a bone's direction is its rest offset: the subject fit needs every one
+        raise DataConfigError(f"data.skeleton: {path}: joints {zero} have a zero offset; every "
+                              "bone needs a rest direction (human31's offsets scaled, not zeroed)")
     for what, got, want in (("joints", sk.joint_names, ref.joint_names),
                             ("DoFs", sk.dof_names, ref.dof_names)):
         if list(got) != list(want):
@@ -104,6 +111,23 @@ def _int(value, key: str, minimum: int, allow_none: bool = False) -> int | None:
 def _short_map(joint_map: Mapping[str, str], n: int = 4) -> str:
     items = [f"{h}={v}" for h, v in joint_map.items()]
     return ", ".join(items[:n]) + (f", ... {len(items) - n} more" if len(items) > n else "")
+
+
+def _check_memory(motion, fps: float, frames: int | None, sc) -> None:
+    """Refuse a clip whose resampling or synthesis needs more memory than is available: the
+    resampled motion (rotations and translations of every joint, float64) and the synthesised
+    images and masks (``frames`` x cameras x pixels x 3 and 1 bytes; ``frames`` None: all)."""
+    from torchmocap.data.scenario import build_rig
+    from torchmocap.memory import check_memory
+
+    n = int(motion.num_frames * fps / motion.fps) + 1
+    T = n if frames is None else min(frames, n)
+    cams = build_rig(sc.rig, sc.image_size).num_cameras
+    w, h = (int(v) for v in sc.image_size)
+    per_pixel = 3 * bool(sc.images.enabled) + bool(sc.silhouettes.enabled)
+    need = n * motion.num_joints * 12 * 8 + T * cams * w * h * per_pixel
+    check_memory(need, f"{n} frames of the motion at {fps:g} fps and the images of {T} frames "
+                 f"of {cams} {w}x{h} views", "data.clip.fps / data.clip.frames")
 
 
 def clip_name(clip: Mapping[str, Any]) -> str:
@@ -158,8 +182,10 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
         matches the file; a warning says so).
     """
     from torchmocap.data import load_scenario, synthesize
+    from torchmocap.data.scenario import MAX_FPS
     from torchmocap.data.subject import fit_subject
     from torchmocap.io import load_motion
+    from torchmocap.io.units import check_subject_size
 
     unknown = sorted(set(clip) - CLIP_KEYS)
     if unknown:
@@ -198,6 +224,12 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
     fps_cfg = clip.get("fps")
     if fps_cfg is not None:
         _number(fps_cfg, "data.clip.fps", "a finite frame rate > 0 or null", 0, True)
+        if fps_cfg > MAX_FPS:
+            raise DataConfigError(f"data.clip.fps: expected at most {MAX_FPS:g} fps (the images "
+                                  f"of every frame are synthesised and held), got {fps_cfg!r}")
+    if asf is not None and Path(path).suffix.lower() != ".amc":
+        raise DataConfigError(f"data.clip.asf: only an .amc clip reads a separate skeleton, "
+                              f"data.clip.path is {Path(path).name} (set data.clip.asf=null)")
     seed = check_seed(seed, "data.seed")
     sc_name = str(scenario)
     if sc_name.endswith((".yaml", ".yml")):
@@ -210,7 +242,9 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
 
         motion, lead = trim_reference_frames(motion, Path(path).name)
         skip = lead.count
+    check_subject_size(motion, smap, "data.clip.unit")
     fps = float(fps_cfg) if fps_cfg is not None else float(sc.fps)
+    _check_memory(motion, fps, AUTO_FRAMES if auto_frames else frames, sc)
     if abs(motion.fps - fps) > 1e-6:
         motion = motion.resample(fps)
     a = int(round(float(start) * fps))

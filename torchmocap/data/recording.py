@@ -46,6 +46,7 @@ from torchmocap.io.frames import (
     check_frame_range,
     numbered_files,
     open_frames,
+    read_mask,
     resize_image,
     scaled_size,
 )
@@ -178,20 +179,13 @@ def _check_streams(sources: list, cams: list[RecordingCamera], fps, stop) -> tup
 def _read_masks(cam: RecordingCamera, frames: range, size: tuple[int, int], scale: float
                 ) -> Iterator[np.ndarray]:
     files = numbered_files(cam.masks, IMAGE_SUFFIXES)
-    from PIL import Image, UnidentifiedImageError
+    from PIL import Image
 
     for t in frames:
         if t not in files:
             raise FrameSourceError(f"{cam.masks}: no mask file for frame {t}")
-        try:
-            with Image.open(files[t]) as im:
-                m = im.convert("L")
-        except (UnidentifiedImageError, OSError) as e:
-            raise FrameSourceError(f"{files[t]}: cannot read mask ({e})") from None
-        if m.size != size:
-            raise FrameSourceError(f"{files[t]}: mask is {m.size[0]}x{m.size[1]}, the camera's "
-                                   f"frames are {size[0]}x{size[1]}")
-        yield np.asarray(resize_image(m, scale, Image.NEAREST)) > 127
+        m = Image.fromarray(read_mask(files[t], size))
+        yield np.asarray(resize_image(m, scale, Image.NEAREST))
 
 
 def _keypoint_settings(keypoints) -> dict[str, Any]:

@@ -32,6 +32,8 @@ __all__ = ["RecordingCamera", "RecordingFiles", "RecordingLayoutError", "discove
 
 #: folders searched for a calibration, in this order
 CALIBRATION_FOLDERS = ("calibration", "CALIB", ".")
+#: the folders of a recording whose entries are searched for cameras' files
+SEARCHED_FOLDERS = ("videos", "images", "pose-associated", "pose", "masks", "background")
 
 
 class RecordingLayoutError(FileNotFoundError):
@@ -130,9 +132,15 @@ def discover_recording(path: str | os.PathLike) -> RecordingFiles:
             folders, no camera frames, two files for one camera, or keypoints or masks of a
             camera without frames (its video is missing).
     """
+    from torchmocap.inputs import note_input
+
     root = Path(path).expanduser().absolute()
     if not root.is_dir():
         raise RecordingLayoutError(f"data.path: no such recording folder: {root}")
+    # the folders searched here decide what is read (a mask folder added is a change)
+    for d in (root, *(root / s for s in SEARCHED_FOLDERS)):
+        if d.is_dir():
+            note_input(d)
     calib = _calibration(root)
     sources = _by_key(_frame_sources(root), f"{root}: camera frames")
     if not sources:

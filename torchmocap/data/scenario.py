@@ -27,6 +27,7 @@ from typing import Any
 import torch
 
 __all__ = [
+    "MAX_FPS",
     "SENSOR_BONES",
     "TRACKING_SENSORS",
     "DepthConfig",
@@ -42,6 +43,9 @@ __all__ = [
     "scenario_dir",
 ]
 
+#: the highest frame rate observations are synthesised at (high-speed video; the images of
+#: every frame are held in memory)
+MAX_FPS = 1000.0
 #: Pons-Moll et al.'s 10 sensors: sensor name → human31 bone (joint whose frame it rides on).
 SENSOR_BONES: dict[str, str] = {
     "back": "pelvis",
@@ -233,7 +237,7 @@ class Scenario:
         name: scenario name (file stem).
         rig: rig config name / path / inline mapping (see module docstring).
         image_size: (width, height) of every camera image.
-        fps: frame rate clips are resampled to.
+        fps: frame rate clips are resampled to (at most :data:`MAX_FPS`).
         body: rendered surface: ``skinned`` (CC0 mesh) or ``capsules``.
         ground_truth: ``source`` (default): joint positions and bone orientations of the ground
             truth — and so the IMUs — are the exact motion-capture ones, while the images show
@@ -274,7 +278,7 @@ class Scenario:
                self.ground_truth)
         _check(len(self.image_size) == 2 and all(int(v) > 0 for v in self.image_size),
                "image_size", "[width, height] > 0", self.image_size)
-        _check(self.fps > 0, "fps", "> 0", self.fps)
+        _check(0 < self.fps <= MAX_FPS, "fps", f"in (0, {MAX_FPS:g}]", self.fps)
         _check(len(self.light_direction) == 3 and self.light_direction[2] < 0,
                "light_direction", "3 values with a negative z (light travels down)",
                self.light_direction)
@@ -374,6 +378,28 @@ def _nest(overrides: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _yaml_file(path: Path, key: str) -> Any:
+    """The content of a YAML file (interpolations resolved), noted as an input; errors name
+    ``key``, the file and the line."""
+    import yaml
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    from torchmocap.inputs import read_text_input, yaml_error_line
+
+    text = read_text_input(path, ScenarioError, f"{key} file (YAML)")
+    try:
+        node = OmegaConf.create(text)
+    except yaml.YAMLError as e:
+        raise ScenarioError(f"{key}: {path}: not valid YAML ({yaml_error_line(e)})") from None
+    except (OmegaConfBaseException, ValueError) as e:
+        raise ScenarioError(f"{key}: cannot read {path}: {str(e).splitlines()[0]}") from None
+    try:
+        return OmegaConf.to_container(node, resolve=True)
+    except OmegaConfBaseException as e:
+        raise ScenarioError(f"{key}: {path}: {str(e).splitlines()[0]}") from None
+
+
 def load_scenario(name_or_path: str | Path | Scenario | dict, _chain: tuple = (),
                   **overrides: Any) -> Scenario:
     """Load a scenario by bundled name (``clean``, ``studio``, ``outdoor``) or YAML path.
@@ -417,10 +443,7 @@ def load_scenario(name_or_path: str | Path | Scenario | dict, _chain: tuple = ()
                                     f"{known_scenarios()} or a path to a YAML file")
         if not path.is_file():
             raise ScenarioError(f"scenario: file not found: {path}")
-        try:
-            data = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
-        except (OmegaConfBaseException, OSError, ValueError) as e:
-            raise ScenarioError(f"scenario: cannot read {path}: {e}") from e
+        data = _yaml_file(path, "scenario")
         if data is None:
             data = {}
         if not isinstance(data, dict):
@@ -496,7 +519,6 @@ def build_rig(rig: Any, image_size: list[int] | tuple[int, int] | None = None):
     Raises:
         ScenarioError: unknown name, unreadable file, or an incompatible aspect ratio.
     """
-    from omegaconf import OmegaConf
 
     from torchmocap.cameras import CameraRig, read_rig
 
@@ -516,7 +538,7 @@ def build_rig(rig: Any, image_size: list[int] | tuple[int, int] | None = None):
                                     f"name {names}, a file path or an inline mapping")
             path = found[0]
         if path.suffix.lower() in (".yaml", ".yml"):
-            data = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+            data = _yaml_file(path, "scenario.rig")
             if isinstance(data, dict) and "_target_" in data:
                 out = _rig_from_config(data, image_size, f"scenario.rig ({path})")
             else:

@@ -22,6 +22,8 @@ from torchmocap.evaluation.truth import (
     track_errors,
 )
 from torchmocap.evaluation.views import reprojection_error, silhouette_agreement
+from torchmocap.evaluation.warnings import EvaluationWarning
+from torchmocap.likelihoods.silhouette import check_fit_iou
 
 __all__ = ["TrackEvaluation", "evaluate_track"]
 
@@ -113,8 +115,10 @@ def evaluate_track(seq, runtime, tracker, track, energy_vs_truth: bool = False
             metrics["estimate_energy_below_truth"] = energy_below_truth(tracker, seq,
                                                                         track.theta)
     else:
-        metrics["silhouette_iou"] = silhouette_agreement(seq, runtime.body, runtime.rig,
-                                                         track.theta)
+        metrics["silhouette_iou"] = iou = silhouette_agreement(seq, runtime.body, runtime.rig,
+                                                               track.theta)
+        if iou:  # no truth: an IoU far below a fit's is the sign of wrong masks or cameras
+            check_fit_iou(iou["mean_over_frames"], "silhouette_iou", EvaluationWarning)
     if seq.joints2d is not None and runtime.rig is not None:
         metrics["reprojection_px"] = reprojection_error(seq, sk, runtime.rig, track.theta)
     for k in META_KEYS:

@@ -289,10 +289,14 @@ def parse_asf(text: str, path: str = "<asf>") -> AsfSkeleton:
 
 
 def _read_text(path: str) -> str:
+    from torchmocap.inputs import note_input
+
+    note_input(path)
     try:
-        return Path(path).read_bytes().decode("latin-1")
+        raw = Path(path).read_bytes()
     except OSError as e:
         raise MotionFormatError(f"cannot read file ({e.strerror or e})", path) from None
+    return raw.removeprefix(b"\xef\xbb\xbf").decode("latin-1")  # a UTF-8 byte-order mark
 
 
 def read_asf(path: str | Path) -> AsfSkeleton:

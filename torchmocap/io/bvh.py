@@ -363,13 +363,16 @@ def read_bvh(
     Raises:
         MotionFormatError: malformed file (message names file and line).
     """
+    from torchmocap.inputs import note_input
+
     path = str(path)
+    note_input(path)
     try:
         raw = Path(path).read_bytes()
     except OSError as e:
         raise MotionFormatError(f"cannot read file ({e.strerror or e})", path) from None
     try:
-        text = raw.decode("utf-8")
+        text = raw.decode("utf-8-sig")  # a byte-order mark (some Windows editors) is dropped
     except UnicodeDecodeError:
         text = raw.decode("latin-1")
     joints, values, fps = parse_bvh(text, path)

@@ -49,6 +49,7 @@ __all__ = [
     "natural_key",
     "numbered_files",
     "open_frames",
+    "read_mask",
     "resize_image",
     "scaled_size",
 ]
@@ -91,9 +92,12 @@ def numbered_files(folder: str | os.PathLike, suffixes: tuple[str, ...]) -> dict
         FrameSourceError: a missing folder, one without such files, or two files of one frame
             (both named).
     """
+    from torchmocap.inputs import note_input
+
     folder = Path(folder)
     if not folder.is_dir():
         raise FrameSourceError(f"{folder}: no such folder")
+    note_input(folder)  # which files are there decides what is read
     out: dict[int, Path] = {}
     for p in sorted(folder.iterdir()):
         if p.suffix.lower() not in suffixes or not p.is_file():
@@ -178,9 +182,12 @@ class VideoFrames:
     def __init__(self, path: str | os.PathLike) -> None:
         import imageio_ffmpeg
 
+        from torchmocap.inputs import note_input
+
         self.path = Path(path)
         if not self.path.is_file():
             raise FrameSourceError(f"{self.path}: no such video file")
+        note_input(self.path)
         self._exe = imageio_ffmpeg.get_ffmpeg_exe()
         try:
             gen = imageio_ffmpeg.read_frames(str(self.path))
@@ -276,9 +283,12 @@ class ImageFolderFrames:
     fps: float | None = None
 
     def __init__(self, path: str | os.PathLike) -> None:
+        from torchmocap.inputs import note_input
+
         self.path = Path(path)
         if not self.path.is_dir():
             raise FrameSourceError(f"{self.path}: no such image folder")
+        note_input(self.path)
         self.files = sorted((p for p in self.path.iterdir()
                              if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()),
                             key=lambda p: natural_key(p.name))
@@ -296,9 +306,12 @@ class ImageFolderFrames:
             ValueError: a range, stride or scale out of bounds.
             FrameSourceError: an unreadable image or one of another size (file named).
         """
+        from torchmocap.inputs import note_input
+
         idx = check_frame_range(self.num_frames, start, stop, stride, scale, str(self.path))
         for i in idx:
             p = self.files[i]
+            note_input(p)
             try:
                 with Image.open(p) as im:
                     im = im.convert("RGB")
@@ -312,6 +325,39 @@ class ImageFolderFrames:
     def __repr__(self) -> str:
         return (f"ImageFolderFrames({str(self.path)!r}, size={self.size}, "
                 f"num_frames={self.num_frames})")
+
+
+def read_mask(path: str | os.PathLike, size: tuple[int, int] | None = None) -> np.ndarray:
+    """A foreground mask image as ``(H, W)`` bool, noted as an input
+    (:func:`torchmocap.inputs.note_input`).
+
+    A mask with at most two grey levels, one of them 0, is binary whatever its foreground value
+    (0/255, 0/1 as written by numpy, 0/2, 0/100): every non-zero pixel is foreground. A mask
+    with more levels (antialiased edges, JPEG noise) is foreground above 127. Colour masks are
+    read as their grey level.
+
+    Args:
+        path: the image file.
+        size: the ``(width, height)`` it must have (the camera's frames), or None.
+
+    Raises:
+        FrameSourceError: an unreadable image, or one of another size (both named).
+    """
+    from torchmocap.inputs import note_input
+
+    path = Path(path)
+    note_input(path)
+    try:
+        with Image.open(path) as im:
+            grey = np.asarray(im.convert("L"))
+    except (UnidentifiedImageError, OSError) as e:
+        raise FrameSourceError(f"{path}: cannot read mask ({e})") from None
+    if size is not None and (grey.shape[1], grey.shape[0]) != tuple(size):
+        raise FrameSourceError(f"{path}: mask is {grey.shape[1]}x{grey.shape[0]}, the camera's "
+                               f"frames are {size[0]}x{size[1]}")
+    levels = np.flatnonzero(np.bincount(grey.ravel(), minlength=256))
+    binary = len(levels) == 1 or (len(levels) == 2 and levels[0] == 0)
+    return grey > (0 if binary else 127)
 
 
 def _image_size(path: Path) -> tuple[int, int]:

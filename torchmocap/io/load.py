@@ -24,7 +24,10 @@ def find_asf(amc_path: str | Path) -> Path:
         MotionFormatError: no ``.asf`` file there, or several and none (or no single longest)
             named after the AMC (then pass ``asf=``).
     """
+    from torchmocap.inputs import note_input
+
     amc_path = Path(amc_path)
+    note_input(amc_path.parent)  # which .asf files are there decides the choice
     found = sorted(p for p in amc_path.parent.glob("*") if p.suffix.lower() == ".asf")
     if len(found) == 1:
         return found[0]

@@ -96,11 +96,10 @@ def read_openpose_json(path: str | os.PathLike, num_keypoints: int | None = None
             missing ``people`` list, non-numeric or non-finite values, negative confidences, or a
             keypoint count other than ``num_keypoints`` (expected and found counts named).
     """
+    from torchmocap.inputs import read_text_input
+
     path = Path(path)
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as e:
-        raise KeypointFormatError(f"{path}: cannot read keypoint file ({e})") from None
+    text = read_text_input(path, KeypointFormatError, "keypoint file (OpenPose JSON)")
     if not text.strip():
         raise KeypointFormatError(f"{path}: empty file; expected OpenPose JSON "
                                   '({"people": [{"pose_keypoints_2d": [...]}]})')

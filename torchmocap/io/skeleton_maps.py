@@ -184,10 +184,12 @@ def _parse_map(data, origin: str) -> SkeletonMap:
 def _read_yaml(text: str, origin: str):
     import yaml
 
+    from torchmocap.inputs import yaml_error_line
+
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as e:
-        raise SkeletonMapError(f"{origin}: not valid YAML ({e})") from None
+        raise SkeletonMapError(f"{origin}: not valid YAML ({yaml_error_line(e)})") from None
 
 
 @functools.cache
@@ -214,10 +216,9 @@ def load_skeleton_map(name_or_path: str | Path | SkeletonMap) -> SkeletonMap:
         return _USER_MAPS[s]
     p = Path(s)
     if p.suffix.lower() in (".yaml", ".yml") or p.exists():
-        try:
-            text = p.read_text(encoding="utf-8")
-        except OSError as e:
-            raise SkeletonMapError(f"{p}: cannot read skeleton map ({e.strerror or e})") from None
+        from torchmocap.inputs import read_text_input
+
+        text = read_text_input(p, SkeletonMapError, "skeleton map (YAML)")
         m = _parse_map(_read_yaml(text, str(p)), str(p))
         if m.family in known_families():
             raise SkeletonMapError(

@@ -106,7 +106,10 @@ def read_trc(path: str | Path) -> TrcData:
             unit, a row with the wrong number of fields or a non-numeric value.
         FileNotFoundError: no file at ``path``.
     """
+    from torchmocap.inputs import note_input
+
     p = str(path)
+    note_input(path)
     try:
         text = Path(path).read_text(encoding="utf-8", errors="replace")
     except FileNotFoundError:

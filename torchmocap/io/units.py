@@ -11,6 +11,10 @@ of 1.5 m, so one unit usually fits; where two do (a tall adult in CMU units is a
 inches, a small child in cm a giant in inches) the reading nearest an adult's 1.5 m is taken and
 the others are reported (``UnitGuess.alternatives``) — pass the unit explicitly (``unit=`` /
 ``data.clip.unit``) for a child or a figure far from human size.
+
+:func:`check_subject_size` measures a clip read in metres the same way and refuses one outside
+a person's size (offsets in another unit than the one applied, or all zero), with a warning for
+a child's size.
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-__all__ = ["LENGTH_UNITS", "UnitGuess", "infer_length_unit"]
+__all__ = ["LENGTH_UNITS", "UnitGuess", "check_subject_size", "infer_length_unit"]
 
 #: Common length units of motion files, metres per unit.
 LENGTH_UNITS: dict[str, float] = {
@@ -105,3 +109,61 @@ def infer_length_unit(clip, skeleton_map=None) -> UnitGuess:
         return UnitGuess(None, None, size)
     (name, unit), *others = fits
     return UnitGuess(unit, name, size, tuple(others))
+
+
+def check_subject_size(clip, skeleton_map=None, unit_setting: str = "unit") -> float | None:
+    """The ankle-head chain (metres) of ``clip`` (read in metres), checked to be a person's.
+
+    Args:
+        clip: a :class:`~torchmocap.io.MotionClip` in metres (``clip.unit``: the metres per
+            file unit that were applied).
+        skeleton_map: the map to find ankle and head with (default: detected or guessed).
+        unit_setting: the setting that chooses the unit, named in the error (e.g.
+            ``data.clip.unit``).
+
+    Returns:
+        the chain in metres, or None when the joints do not map onto human31 (not measurable).
+
+    Raises:
+        MotionFormatError: the chain is outside a person's 0.75-1.95 m (the file's lengths are
+            in another unit than the one applied, or its offsets are zero or corrupt) — naming
+            the file, the size, the unit applied and ``unit_setting``.
+
+    Warns:
+        UserWarning: a child's size (below 1.125 m): right for a child, else a wrong unit.
+    """
+    import warnings
+
+    from torchmocap.io.errors import MotionFormatError, SkeletonMapError
+    from torchmocap.io.skeleton_maps import chain_height
+
+    try:
+        size = 0.5 * (chain_height(clip, skeleton_map, "left")
+                      + chain_height(clip, skeleton_map, "right"))
+    except SkeletonMapError:
+        return None
+    unit = getattr(clip, "unit", None)
+    applied = "" if unit is None else f" with {unit:g} m per file unit"
+    lo, hi = _PERSON
+    if not (math.isfinite(size) and lo <= size <= hi):
+        what = ("0 m: its offsets (bone lengths) are all zero" if size == 0
+                else f"{_length(size)}{applied}")
+        raise MotionFormatError(
+            f"the subject's ankle-head chain measures {what}; a person's is {lo}-{hi} m (an "
+            f"adult's {_ADULT_MIN}-{hi} m): the file's lengths are in another unit or corrupt "
+            f"(set {unit_setting}: metres per file length unit)", clip.source_path)
+    if size < _ADULT_MIN:
+        warnings.warn(f"{clip.source_path}: the subject's ankle-head chain measures "
+                      f"{size:.2f} m{applied}, a child's size; if the subject is an adult, set "
+                      f"{unit_setting} (metres per file length unit)", stacklevel=2)
+    return size
+
+
+def _length(metres: float) -> str:
+    """``metres`` in a readable unit (``1424 km``, ``3.2 mm``)."""
+    if not math.isfinite(metres):
+        return f"{metres} m"
+    for unit, f in (("km", 1e3), ("m", 1.0), ("mm", 1e-3)):
+        if abs(metres) >= f or unit == "mm":
+            return f"{metres / f:.4g} {unit}"
+    return f"{metres:.4g} m"

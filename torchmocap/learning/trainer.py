@@ -106,7 +106,7 @@ class TrainSettings:
                              f"got {self.end_to_end.mode!r}")
         for k in ("batch_size", "epochs", "max_negatives"):
             v = getattr(self, k)
-            if isinstance(v, bool) or not isinstance(v, int) or v < (0 if k == "epochs" else 1):
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"{k}: expected a positive int, got {v!r}")
         if not (self.lr > 0 and math.isfinite(self.lr)):
             raise ValueError(f"optim.lr: expected a positive number, got {self.lr!r}")
@@ -333,6 +333,9 @@ class Trainer:
         """Continue from a checkpoint (weights, optimiser, schedule, data order, metrics)."""
         payload = load_checkpoint(path, self.term, optimizer=self.optimizer,
                                   scheduler=self.scheduler, generator=self.generator)
+        if int(payload["epoch"]) >= self.s.epochs:
+            raise ValueError(f"epochs: the checkpoint {path} has trained {payload['epoch']} "
+                             f"epochs already; set epochs > {payload['epoch']} to go on")
         self.epoch, self.step = int(payload["epoch"]), int(payload["step"])
         self.metrics = list(payload.get("metrics") or [])
 

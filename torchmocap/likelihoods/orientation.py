@@ -16,7 +16,13 @@ import torch
 from torchmocap.geometry import geodesic_angle
 from torchmocap.likelihoods.base import Likelihood
 
-__all__ = ["orientation_energy", "OrientationLikelihood"]
+__all__ = ["orientation_energy", "OrientationLikelihood", "sensor_evidence"]
+
+
+def sensor_evidence(valid: torch.Tensor | None) -> bool:
+    """Whether a frame's sensor samples hold evidence: ``valid (S,)`` has a sample that was not
+    dropped (None: all valid)."""
+    return valid is None or bool(valid.any())
 
 
 def orientation_energy(bone_rotations: torch.Tensor, offsets: torch.Tensor,
@@ -72,8 +78,7 @@ class OrientationLikelihood(Likelihood):
         return R_ts.to(self.manifold.sensor_to_bone.dtype), valid
 
     def evidence(self, observation) -> bool:
-        _, valid = observation
-        return valid is None or bool(valid.any())
+        return sensor_evidence(observation[1])
 
     def energy(self, poses, observation) -> torch.Tensor:
         R_ts, valid = observation

@@ -48,9 +48,15 @@ __all__ = [
     "silhouette_energy",
     "prepare_silhouettes",
     "render_capsule_silhouettes",
+    "MIN_PLAUSIBLE_IOU",
+    "check_fit_iou",
     "silhouette_iou",
     "soft_capsule_silhouettes",
 ]
+
+#: a body fitted to a person's masks overlaps them with IoU 0.5-0.8 (capsules vs the skinned
+#: mesh 0.77; the real bodytrack frame 0.5-0.6); below this the masks or the cameras are wrong
+MIN_PLAUSIBLE_IOU = 0.3
 
 
 @dataclass
@@ -563,6 +569,20 @@ def soft_capsule_silhouettes(endpoints: torch.Tensor, radii: torch.Tensor, rig,
     margin = _coverage_margin(q.expand(C, -1, -1), st, smooth=True)  # (C, N, P)
     soft = torch.sigmoid(margin / tau)
     return soft.permute(2, 0, 1).reshape(P, C, ys.numel(), xs.numel())
+
+
+def check_fit_iou(iou: float, what: str, category: type[Warning] = UserWarning) -> None:
+    """Warn (``category``) when a body fitted to masks overlaps them with an IoU below
+    :data:`MIN_PLAUSIBLE_IOU`: inverted or all-foreground masks, or the calibration of other
+    cameras (swapped), fit no body well, and the track would be reported as if nothing were
+    wrong. ``what`` names the fit in the message."""
+    import math
+    import warnings
+
+    if math.isfinite(iou) and iou < MIN_PLAUSIBLE_IOU:
+        warnings.warn(f"{what}: the silhouette IoU of the fitted body is {iou:.2f}, far below a "
+                      f"fit to a person's masks (0.5-0.8): masks inverted or all foreground, or "
+                      "the calibration of other cameras?", category, stacklevel=3)
 
 
 def silhouette_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

@@ -245,6 +245,8 @@ def load_keypoint_map(name_or_path: str | Path | KeypointMap,
         return name_or_path if skeleton is None else name_or_path.bind(skeleton)
     import yaml
 
+    from torchmocap.inputs import read_text_input, yaml_error_line
+
     s = str(name_or_path)
     if s.lower() in known_keypoint_formats():
         res = _builtin_dir() / f"{s.lower()}.yaml"
@@ -254,15 +256,11 @@ def load_keypoint_map(name_or_path: str | Path | KeypointMap,
         if not (p.suffix.lower() in (".yaml", ".yml") or p.exists()):
             raise KeypointMapError(f"unknown keypoint format {s!r}; built-in formats: "
                                    f"{known_keypoint_formats()} (or pass the path of a map YAML)")
-        try:
-            text = p.read_text(encoding="utf-8")
-        except OSError as e:
-            raise KeypointMapError(f"{p}: cannot read keypoint map ({e.strerror or e})") from None
-        origin = str(p)
+        text, origin = read_text_input(p, KeypointMapError, "keypoint map (YAML)"), str(p)
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as e:
-        raise KeypointMapError(f"{origin}: not valid YAML ({e})") from None
+        raise KeypointMapError(f"{origin}: not valid YAML ({yaml_error_line(e)})") from None
     return _parse(data, origin, skeleton)
 
 

@@ -283,3 +283,22 @@ def test_checkpoint_keeps_the_fitted_body(tmp_path):
     tr.load_checkpoint(path)
     torch.testing.assert_close(rt.body.radii, fitted_r)
     torch.testing.assert_close(rt.body.axis_offsets, fitted_o)
+
+
+@pytest.mark.parametrize("case", ["inverted", "all"])
+def test_implausible_masks_give_a_warning(case):
+    """Inverted or all-foreground masks were fitted to an IoU of 0.03-0.3 without a word; a
+    plausible fit (the same body's masks) gives none."""
+    import warnings
+
+    sk, rig, th, truth, masks, _ = _arm_out_scene()
+    bad = ~masks if case == "inverted" else torch.ones_like(masks)
+    fit = SilhouetteBodyFit(CapsuleBody(sk).float(), rig, iterations=5, stride=2)
+    with pytest.warns(UserWarning, match=r"body_fit: the silhouette IoU of the fitted body is "
+                                         r"0\.\d\d, far below"):
+        info = fit(th, Frame(index=0, time=0.0, silhouettes=bad))
+    assert info["iou_after"] < 0.3
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ok = SilhouetteBodyFit(CapsuleBody(sk).float(), rig, iterations=5, stride=2)
+        assert ok(th, Frame(index=0, time=0.0, silhouettes=masks))["iou_after"] > 0.9

@@ -191,6 +191,12 @@ def test_descent_stages_refuse_the_non_differentiable_silhouette(walk):
         build_tracker(tracker_config("l", ["likelihood@tracker.likelihood=image"]),
                       _runtime(walk))
     build_tracker(tracker_config("p_refined"), _runtime(walk))  # smooth: accepted
+    # the mixture's local optimisation and covariances take gradients too (an autograd error
+    # deep in the first frame before)
+    with pytest.raises(ComponentError, match="likelihood.terms.silhouette: MixtureInference "
+                                             "takes gradients.*smooth"):
+        build_tracker(tracker_config("p", ["inference@tracker.inference=mixture"]),
+                      _runtime(walk))
 
 
 def test_nested_choices_override_from_the_command_line(walk):
@@ -288,3 +294,71 @@ def test_constructor_errors(walk):
                 tr.estimator)
     with pytest.raises(ValueError, match="theta0"):
         tr.init(torch.zeros(5))
+
+
+def test_seed_beyond_a_generator_is_refused(walk):
+    """``seed=2**64`` was synthesised, then overflowed in the tracker's generator."""
+    from torchmocap.assembly import ComponentError
+
+    for seed in (2 ** 64, -(2 ** 63) - 1, 1.5, True):
+        with pytest.raises((ComponentError, ValueError), match=r"seed: expected an integer"):
+            _tracker(walk, "g", seed=seed)
+    assert _tracker(walk, "g", seed=2 ** 64 - 1).seed == 2 ** 64 - 1
+
+
+def test_checkpoint_settings_are_checked_before_tracking(walk, tmp_path):
+    """``checkpoint_every=0`` divided by zero after the first frame; a checkpoint in a missing
+    directory failed at the first save, frames into the track."""
+    sk, rig, theta, seq = walk
+    tr = _tracker(walk, "g", ["tracker.num_particles=8", "tracker.inference.layers=1"])
+    tr.init = None  # nothing may be tracked: the settings are checked first
+    for every in (0, -3, 2.5, "abc", True):
+        with pytest.raises(ValueError, match=r"^checkpoint_every: expected an integer >= 1"):
+            tr.run(seq, theta0=theta[0], progress=False, checkpoint_every=every)
+    with pytest.raises(ValueError, match=r"^checkpoint: the directory .*missing does not exist"):
+        tr.run(seq, theta0=theta[0], progress=False, checkpoint=str(tmp_path / "missing" / "s"))
+    with pytest.raises(ValueError, match=r"^checkpoint: .* is a directory"):
+        tr.run(seq, theta0=theta[0], progress=False, checkpoint=str(tmp_path))
+
+
+def test_particles_that_cannot_fit_in_memory_are_refused(walk, monkeypatch):
+    """``num_particles=1000000000`` tried to allocate 64 GB in the first frame."""
+    import torchmocap.memory as m
+
+    sk, rig, theta, seq = walk
+    tr = _tracker(walk, "g", ["tracker.num_particles=1000000000"])
+    assert tr.working_memory() == 10 ** 9 * (sk.num_dofs + 16 * sk.num_joints) * 4
+    tr.init = None
+    with pytest.raises(m.MemoryBudgetError, match=r"^num_particles: 1000000000 particles "):
+        tr.run(seq, theta0=theta[0], progress=False)
+    small = _tracker(walk, "g", ["tracker.num_particles=100"])
+    monkeypatch.setattr(m, "available_memory", lambda device=None: small.working_memory() - 1)
+    with pytest.raises(m.MemoryBudgetError):
+        small.run(seq, theta0=theta[0], progress=False)
+
+
+def test_frames_whose_imu_samples_are_all_dropped_have_no_evidence(walk):
+    """P reads the IMUs in its proposal only: with every sample dropped (IMU dropout of
+    99.9 %) ``frames_without_evidence`` stayed empty. Now such a frame reports ``imu``, as a
+    likelihood term without evidence is reported."""
+    import dataclasses
+
+    from torchmocap.evaluation import EvaluationWarning, summarize_diagnostics
+
+    sk, rig, theta, seq = walk
+    valid = torch.ones_like(seq.imu.valid)
+    valid[2:5] = False  # frames 2-4: every sample dropped; frame 1 and 5 fine
+    valid[5, 1] = False  # frame 5: one sensor dropped, the others are evidence
+    imu = dataclasses.replace(seq.imu, valid=valid)
+    seq6 = Sequence(fps=25.0, rig=rig, silhouettes=seq.silhouettes[:6], imu=imu)
+    tr = _tracker(walk, "p", ["tracker.num_particles=10", "tracker.inference.layers=1"])
+    track = tr.run(seq6, theta0=theta[0], progress=False)
+    assert [i.no_evidence for i in track.infos] == [[], [], ["imu"], ["imu"], ["imu"], []]
+    with pytest.warns(EvaluationWarning, match="without usable evidence.*imu 3"):
+        assert summarize_diagnostics(track.infos)["frames_without_evidence"] == {"imu": 3}
+    # with the orientation term in the likelihood, that term reports it (once: also where the
+    # proposal reads the IMUs too, as in p_refined)
+    for preset in ("gs", "p_refined"):
+        tr = _tracker(walk, preset, ["tracker.num_particles=10", "tracker.inference.layers=1"])
+        track = tr.run(seq6, theta0=theta[0], progress=False)
+        assert [i.no_evidence for i in track.infos][2:5] == [["orientation"]] * 3, preset

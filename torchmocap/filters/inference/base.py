@@ -57,9 +57,13 @@ class Inference(nn.Module):
     ``keeps_hypotheses``: the inference records its kept modes per frame
     (``info["hypotheses"]``, ``"hypothesis_weights"``, ``"mode_energy"``), which a
     :class:`~torchmocap.filters.smoothing.ViterbiSmoother` reads.
+    ``differentiates_energy``: it takes gradients of the energy (local descent, a mixture's
+    local optimisation and covariances); a tracker refuses it with a likelihood term that has
+    none.
     """
 
     keeps_hypotheses = False
+    differentiates_energy = False
 
     def forward(self, energy, proposal, estimator, context, num: int,
                 generator: torch.Generator | None = None) -> InferenceResult:

@@ -30,6 +30,8 @@ class LocalInference(Inference):
     batch; the lowest final energy is the estimate).
     """
 
+    differentiates_energy = True
+
     def __init__(self, skeleton, method: str = "adam", iterations: int = 40, lr: float = 0.02,
                  starts: int = 1) -> None:
         super().__init__()

@@ -460,6 +460,7 @@ class MixtureInference(Inference):
     """
 
     keeps_hypotheses = True
+    differentiates_energy = True  # the local optimisation and the modes' covariances
 
     def __init__(self, skeleton=None, components: int = 8, layers: int = 1,
                  iterations: int = 20, optimiser: str = "auto", hessian: str = "auto",

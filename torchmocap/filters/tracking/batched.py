@@ -48,7 +48,12 @@ from typing import Any
 import torch
 
 from torchmocap.filters.tracking.state import Track
-from torchmocap.filters.tracking.tracker import Tracker, initial_pose
+from torchmocap.filters.tracking.tracker import (
+    Tracker,
+    check_seed,
+    check_working_memory,
+    initial_pose,
+)
 
 __all__ = ["BatchGroup", "Lockstep", "track_groups", "track_seeds"]
 
@@ -252,8 +257,8 @@ def _check_groups(groups: Sequence[BatchGroup]) -> None:
         if not isinstance(g.tracker, Tracker):
             raise TypeError(f"groups[{b}].tracker: expected a Tracker, got "
                             f"{type(g.tracker).__name__}")
-        if g.seed is not None and (isinstance(g.seed, bool) or not isinstance(g.seed, int)):
-            raise ValueError(f"groups[{b}].seed: expected an int or None, got {g.seed!r}")
+        if g.seed is not None:
+            check_seed(g.seed, f"groups[{b}].seed")
         first = seen.setdefault(id(g.tracker), b)
         if first == b:
             continue
@@ -300,6 +305,7 @@ def track_groups(groups: Sequence[BatchGroup], progress: bool = True,
     from tqdm import tqdm
 
     _check_groups(groups)
+    check_working_memory([g.tracker for g in groups])
     B = len(groups)
     states: list = [None] * B
     first_state: dict[int, Any] = {}

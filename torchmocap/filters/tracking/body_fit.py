@@ -40,6 +40,7 @@ from torch import nn
 
 from torchmocap.cameras.hull import visual_hull
 from torchmocap.likelihoods.silhouette import (
+    check_fit_iou,
     prepare_silhouettes,
     render_capsule_silhouettes,
     silhouette_energy,
@@ -87,7 +88,9 @@ class SilhouetteBodyFit(nn.Module):
             this (metres) plus the largest radius.
 
     A fit that lowers the hard IoU of the masks it fitted (the soft IoU's optimum need not be
-    the hard IoU's) is undone: the body is left as it was and ``kept`` is ``False``.
+    the hard IoU's) is undone: the body is left as it was and ``kept`` is ``False``. A fit
+    whose IoU stays far below a person's (:func:`~torchmocap.likelihoods.silhouette.check_fit_iou`)
+    gives a warning: the masks or the cameras are wrong.
 
     ``forward(theta (D,), frame) -> info`` with ``iou_before``/``iou_after`` (mean over views),
     ``kept``,
@@ -276,6 +279,7 @@ class SilhouetteBodyFit(nn.Module):
             set_radii(r0)
             body.axis_offsets.copy_(off0)
             best, e1, iou1, iou1_f = torch.zeros_like(best), e0, iou0, iou0_f
+        check_fit_iou(iou1, "body_fit")
         total = body.radii / self.initial_radii.to(body.radii).clamp_min(1e-12)
         first = [self.segment_index.tolist().index(i) for i in range(len(self.segments))]
         info = {"iou_before": iou0, "iou_after": iou1, "kept": kept, "energy_before": e0,

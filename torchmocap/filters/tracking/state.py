@@ -34,7 +34,9 @@ class FrameInfo:
         proposal: the proposal's statistics (acceptance rates, tries, fallbacks; summed counts
             and mean rates over the frame's layers).
         refine: a refinement stage's statistics (energies before and after, which start won).
-        no_evidence: the likelihood terms without usable evidence in this frame.
+        no_evidence: the likelihood terms without usable evidence in this frame, and
+            ``"imu"`` when only a proposal (or the estimator) reads the IMUs and every tracking
+            sample is dropped.
         hypotheses: ``K x D`` modes kept by a multi-hypothesis inference.
         hypothesis_weights: their ``K`` weights; mode_energy: their ``K`` energies.
         body_fit: the body fit of the first frame (IoU and energy before/after, scales).

@@ -37,13 +37,21 @@ from torchmocap.filters.smoothing.base import Smoother
 from torchmocap.filters.tracking.estimators import Estimator
 from torchmocap.filters.tracking.state import FrameInfo, Track, TrackState
 from torchmocap.likelihoods.base import FrameEnergy, Likelihood
+from torchmocap.likelihoods.orientation import sensor_evidence
 from torchmocap.proposals.base import Proposal, ProposalContext
 
 __all__ = [
+    "SEED_RANGE",
     "CheckpointError",
     "MissingObservationError",
     "Tracker",
+    "check_checkpoint",
+    "check_seed",
+    "check_working_memory",
 ]
+
+#: the seeds a ``torch.Generator`` takes (its 64-bit state; negative seeds wrap around)
+SEED_RANGE = (-(2 ** 63), 2 ** 64 - 1)
 
 
 class MissingObservationError(ValueError):
@@ -54,6 +62,61 @@ class CheckpointError(ValueError):
     """A checkpoint cannot be resumed by this tracker (other settings, data or format)."""
 
 
+def check_seed(seed, name: str = "seed") -> int:
+    """``seed`` as a generator seed: an integer in :data:`SEED_RANGE` (``1.5`` and ``True``
+    are errors naming ``name``, not seeds 1; ``2**64`` cannot seed a generator)."""
+    import numbers
+
+    lo, hi = SEED_RANGE
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or \
+            not lo <= seed <= hi:
+        raise ValueError(f"{name}: expected an integer in [-2**63, 2**64 - 1] (a generator's "
+                         f"seed), got {seed!r}")
+    return int(seed)
+
+
+def check_checkpoint(path: str | os.PathLike | None, every) -> None:
+    """Check checkpoint settings before a track starts: ``every`` an integer >= 1 and, with a
+    ``path``, its directory existing and writable (not found out at the first save, frames
+    into the track).
+
+    Raises:
+        ValueError: ``checkpoint_every`` or ``checkpoint`` (named) is invalid.
+    """
+    if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+        raise ValueError(f"checkpoint_every: expected an integer >= 1 (frames between saves), "
+                         f"got {every!r}")
+    if path is None:
+        return
+    p = os.path.abspath(os.fspath(path))
+    if os.path.isdir(p):
+        raise ValueError(f"checkpoint: {p} is a directory; expected a file path")
+    parent = os.path.dirname(p)
+    if not os.path.isdir(parent):
+        raise ValueError(f"checkpoint: the directory {parent} does not exist (create it, or "
+                         "choose another checkpoint path)")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ValueError(f"checkpoint: the directory {parent} is not writable")
+
+
+def check_working_memory(trackers) -> None:
+    """Refuse trackers (tracked together) whose particle sets cannot fit in memory: each frame
+    holds at least every particle's pose and the 4x4 frames of every joint
+    (:meth:`Tracker.working_memory`), before any likelihood's own buffers.
+
+    Raises:
+        MemoryBudgetError: naming ``num_particles``.
+    """
+    from torchmocap.memory import check_memory
+
+    trackers = list(trackers)
+    t = trackers[0]
+    n = sum(tr.num_particles for tr in trackers)
+    check_memory(sum(tr.working_memory() for tr in trackers),
+                 f"{n} particles ({t.skeleton.num_dofs} DoFs and the 4x4 frames of "
+                 f"{t.skeleton.num_joints} joints each, {t.dtype})", "num_particles", t.device)
+
+
 def _check_component(obj, kind, name: str):
     if not isinstance(obj, kind):
         raise TypeError(f"{name}: expected a {kind.__module__}.{kind.__name__}, got "
@@ -62,20 +125,22 @@ def _check_component(obj, kind, name: str):
 
 
 def _check_descent_energy(inference: Inference, likelihood: Likelihood) -> None:
-    """A gradient-descent stage (:class:`LocalInference`, alone or as a ``refine`` stage) needs
-    a differentiable energy: the 0/1 coverage test of a non-smooth silhouette term has no
-    gradient, so the descent would silently ignore it."""
-    from torchmocap.filters.inference.local import LocalInference
+    """An inference that takes gradients of the energy (``differentiates_energy``: a
+    :class:`LocalInference`, alone or as a ``refine`` stage, or a mixture's local optimisation)
+    needs a differentiable energy: the 0/1 coverage test of a non-smooth silhouette term has no
+    gradient, so a descent would silently ignore it (and autograd refuses its kernels)."""
     from torchmocap.likelihoods.silhouette import SilhouetteLikelihood
 
-    if not any(isinstance(m, LocalInference) for m in inference.modules()):
+    users = [type(m).__name__ for m in inference.modules()
+             if getattr(m, "differentiates_energy", False)]
+    if not users:
         return
     for name, m in likelihood.named_modules():
         if isinstance(m, SilhouetteLikelihood) and not m.smooth:
             where = f"likelihood.{name}" if name else "likelihood"
-            raise ValueError(f"{where}: a gradient-descent inference stage needs the smooth "
-                             "silhouette term (smooth: true, e.g. likelihood=smooth_image); "
-                             "the 0/1 coverage test has no gradient")
+            raise ValueError(f"{where}: {users[0]} takes gradients of the energy and needs the "
+                             "smooth silhouette term (smooth: true, e.g. "
+                             "likelihood=smooth_image); the 0/1 coverage test has no gradient")
 
 
 class Tracker(nn.Module):
@@ -130,8 +195,7 @@ class Tracker(nn.Module):
         if isinstance(num_particles, bool) or not isinstance(num_particles, int) \
                 or num_particles < 1:
             raise ValueError(f"num_particles: expected an int >= 1, got {num_particles!r}")
-        if isinstance(seed, bool) or not isinstance(seed, int):
-            raise ValueError(f"seed: expected an int, got {seed!r}")
+        seed = check_seed(seed)
         if not callable(predictor):
             raise TypeError(f"predictor: expected a callable, got {type(predictor).__name__}")
         self.skeleton = skeleton
@@ -151,6 +215,12 @@ class Tracker(nn.Module):
         self.body_fit = body_fit
         self.smoother = None if smoother is None else _check_component(smoother, Smoother,
                                                                         "smoother")
+        # IMU samples read by the proposal or estimator only (P's sensor-manifold proposal): a
+        # frame whose samples are all dropped is reported like a likelihood term without
+        # evidence (an orientation term in the likelihood reports it itself)
+        users = self._users_of("imu")
+        self._imu_outside_likelihood = bool(users) and not any(
+            u.startswith("likelihood") for u in users)
         if smoother is not None:
             smoother.check(self.inference)
 
@@ -163,6 +233,14 @@ class Tracker(nn.Module):
     def device(self) -> torch.device:
         """Where the tracker computes: the skeleton's device (``tracker.to("cuda")``)."""
         return self.skeleton.offsets.device
+
+    def working_memory(self) -> int:
+        """Bytes a frame holds at least: ``P x (D + 16 J)`` numbers of the tracking dtype —
+        every particle's pose and the 4x4 frames of its ``J`` joints (the forward kinematics
+        every likelihood evaluates); the likelihood's own buffers come on top."""
+        sk = self.skeleton
+        item = torch.finfo(self.dtype).bits // 8
+        return self.num_particles * (sk.num_dofs + 16 * sk.num_joints) * item
 
     def _on_device(self, frame):
         """``frame`` with its tensors on the tracker's device (a no-op when they are)."""
@@ -252,9 +330,12 @@ class Tracker(nn.Module):
                             self.skeleton.lower.to(est.dtype))
         with torch.no_grad():
             terms = {k: float(v[0]) for k, v in energy.terms(est[None]).items()}
-        missing = energy.missing_evidence()
+        missing = list(energy.missing_evidence())
+        if self._imu_outside_likelihood and frame.imu is not None and \
+                not sensor_evidence(frame.imu_valid) and "imu" not in missing:
+            missing.append("imu")  # every tracking sensor's sample dropped
         if missing:  # terms without usable evidence in this frame (uninformative)
-            res.info["no_evidence"] = list(missing)
+            res.info["no_evidence"] = missing
         return est, res, terms
 
     # ------------------------------------------------------------------ state
@@ -374,6 +455,7 @@ class Tracker(nn.Module):
             progress: show a tqdm progress bar.
             checkpoint: file to save the state to every ``checkpoint_every`` frames; when it
                 exists the run resumes from it (same seed: same track as an uninterrupted run).
+                Its directory must exist (:func:`check_checkpoint`).
             stop_after: stop after this many frames (to simulate an interruption).
             fingerprint: identity of the run (settings + data); stored in the checkpoint and
                 compared on resume (:class:`CheckpointError` on a mismatch).
@@ -382,7 +464,9 @@ class Tracker(nn.Module):
         """
         from tqdm import tqdm
 
+        check_checkpoint(checkpoint, checkpoint_every)
         self.check_sequence(sequence)
+        check_working_memory([self])
         tracking = None
         if sequence.imu is not None:
             tracking = sequence.imu.tracking.nonzero()[:, 0]
