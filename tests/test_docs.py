@@ -26,3 +26,21 @@ def test_docs_build_strict(tmp_path):
     assert (tmp_path / "site" / "api" / "filters" / "index.html").is_file()
     page = (tmp_path / "site" / "api" / "evaluation" / "index.html").read_text()
     assert "evaluate_track" in page and "leave_one_camera_out" in page
+
+
+def _text_files():
+    r = subprocess.run(["git", "ls-files", "*.md", "*.py", "*.yaml", "*.toml", "*.cfg", "*.txt"],
+                       capture_output=True, text=True, cwd=ROOT)
+    if r.returncode != 0:
+        pytest.skip("not a git checkout")
+    return [ROOT / p for p in r.stdout.split()]
+
+
+def test_no_merge_conflict_markers():
+    bad = []
+    for path in _text_files():
+        for n, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+            if line.startswith(("<<<<<<< ", ">>>>>>> ")) or line == "=======":
+                bad.append(f"{path.relative_to(ROOT)}:{n}")
+    assert not bad, bad
+
