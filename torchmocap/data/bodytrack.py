@@ -11,7 +11,6 @@ centre, one per heading (``meta["initial_poses"]``) — what a tracker with
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import torch
@@ -93,32 +92,15 @@ def load_bodytrack_sequence(path: str | Path, scale: float = 1.0, headings: int 
         voxel: visual-hull voxel size (metres).
         seed: unused (the loader is deterministic); accepted like every data source's.
     """
-    from torchmocap.cameras import visual_hull
     from torchmocap.data.sequence import Sequence
-    from torchmocap.skeleton import human31
+    from torchmocap.data.subject_start import hull_start
 
-    if isinstance(headings, bool) or not isinstance(headings, int) or headings < 1:
-        raise ValueError(f"data.headings: expected an int >= 1, got {headings!r}")
     root = Path(str(path)).expanduser().absolute()
     rig, images, masks = load_bodytrack(root, float(scale))
-    hull = visual_hull(rig.double(), masks, [[-3, 3], [-3, 3], [-0.1, 2.3]], float(voxel))
-    pts = hull.largest_component().centers()
-    if pts.shape[0] == 0:
-        raise ValueError("data.path: the visual hull of the masks is empty (calibration or masks "
-                         "wrong)")
-    top = float(pts[:, 2].max())
-    centre = pts.mean(0)
-    size = min(max(top / 1.75, 0.85), 1.15)
-    sk = human31().with_bone_lengths(scale=size)
-    base = sk.zero_pose(dtype=torch.float32)
-    base[0], base[1] = float(centre[0]), float(centre[1])
-    base[2] = float(pts[:, 2].min().clamp(max=0.1))  # feet on the hull's floor
-    cands = base.repeat(headings, 1)
-    cands[:, sk.dof_index("pelvis_rz")] = torch.arange(headings) * (2 * math.pi / headings)
+    start = hull_start(rig, masks, headings, float(voxel))
     colour = images[..., None].expand(*images.shape, 3).contiguous()
     return Sequence(
         fps=25.0, scenario="recorded", rig=rig.float(), silhouettes=masks[None],
         view_dropped=torch.zeros(1, rig.num_cameras, dtype=torch.bool), images=colour[None],
-        meta={"source": "bodytrack", "path": str(root), "subject_skeleton": sk.to_dict(),
-              "initial_poses": cands.tolist(), "hull_centre": centre.tolist(),
-              "hull_top_m": top, "skeleton_scale": size, "suggested_tracker": "real_frame"})
+        meta={"source": "bodytrack", "path": str(root), **start,
+              "suggested_tracker": "real_frame"})
