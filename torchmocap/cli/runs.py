@@ -134,7 +134,8 @@ def config_fingerprint(cfg, exclude: tuple[str, ...] = ("progress", "threads")) 
 
 def load_sequence(cfg, min_frames: int = 2):
     """Build the ``data`` node (a sequence source with ``_target_``; its ``seed`` defaults to
-    the run's). With ``sequence_cache: <dir>`` in the config, the sequence is saved under
+    the run's, and ``evaluation.heldout_camera`` is passed to a source that holds one out).
+    With ``sequence_cache: <dir>`` in the config, the sequence is saved under
     ``<dir>/<fingerprint of the data node, the code and the data files>`` and read back by later
     runs with the same data settings (e.g. every tracker and seed of a sweep)."""
     from hydra.utils import get_object
@@ -148,6 +149,12 @@ def load_sequence(cfg, min_frames: int = 2):
         extra["seed"] = int(cfg.seed)
     if _accepts(fn, "min_frames")[0]:
         extra["min_frames"] = min_frames
+    held = (cfg.get("evaluation") or {}).get("heldout_camera")
+    if held is not None:
+        if not _accepts(fn, "heldout_camera")[0]:
+            raise ValueError(f"evaluation.heldout_camera: the data source {cfg.data._target_} "
+                             "cannot hold a camera out (a recording can: data=recording)")
+        extra["heldout_camera"] = held
     cache = cfg.get("sequence_cache")
     key = None
     if cache:

@@ -54,6 +54,7 @@ def _sequence_fingerprint(seq) -> str:
 def run(cfg: DictConfig, out: Path) -> dict:
     """Run the configured job; returns the metrics written to ``out/metrics.json``."""
     from torchmocap.assembly import Runtime, build_tracker
+    from torchmocap.data import split_heldout
 
     if cfg.get("batch_seeds"):  # several seeds in one process: one run dir per seed
         return run_batch(cfg, out)
@@ -71,10 +72,11 @@ def run(cfg: DictConfig, out: Path) -> dict:
     validate_tracker(cfg)  # settings errors before any loading, fitting or synthesis
     validate_outputs(cfg)
     seq = load_sequence(cfg, min_frames=2)
-    runtime = Runtime.from_sequence(seq)
+    tracked, _ = split_heldout(seq)  # the views the tracker sees (all but a held-out camera)
+    runtime = Runtime.from_sequence(tracked)
     try:
         tracker = build_tracker(cfg.tracker, runtime, seed=cfg.seed)
-        tracker.check_sequence(seq)
+        tracker.check_sequence(tracked)
     except ValueError as e:
         hint = seq.meta.get("suggested_tracker")
         if hint and cfg.tracker.get("name") != hint:
@@ -86,9 +88,9 @@ def run(cfg: DictConfig, out: Path) -> dict:
         if not ckpt.is_absolute():
             ckpt = (out if is_multirun() else Path.cwd()) / ckpt
         ckpt = str(ckpt)
-    track = tracker.run(seq, progress=bool(cfg.get("progress", True)), checkpoint=ckpt,
+    track = tracker.run(tracked, progress=bool(cfg.get("progress", True)), checkpoint=ckpt,
                         checkpoint_every=int(cfg.get("checkpoint_every", 10)),
-                        fingerprint=f"{fingerprint}-{_sequence_fingerprint(seq)}",
+                        fingerprint=f"{fingerprint}-{_sequence_fingerprint(tracked)}",
                         callbacks=[governor])
     return finish(cfg, out, seq, runtime, tracker, track, fingerprint,
                   {"threads": governor.summary()})
