@@ -27,8 +27,9 @@ from torchmocap.evaluation.views import reprojection_error, silhouette_agreement
 
 __all__ = ["TrackEvaluation", "evaluate_track"]
 
-#: sequence meta entries reported beside the scores (a recording's hull top and subject scale)
-META_KEYS = ("hull_top_m", "skeleton_scale", "source")
+#: sequence meta entries reported beside the scores (a recording's hull top, subject scale and
+#: subject fit)
+META_KEYS = ("hull_top_m", "skeleton_scale", "source", "subject_fit")
 
 
 @dataclass
@@ -73,9 +74,9 @@ def evaluate_track(seq, runtime, tracker, track, energy_vs_truth: bool = False,
         ``filtered`` (the tracker's own errors) and each chain stage's errors, with skin
         markers ``marker_error_mm``, with hypotheses ``hypotheses``, and on request
         ``estimate_energy_below_truth``; without ground truth ``silhouette_iou``; with 2D
-        joints ``reprojection_px``; the sequence's ``hull_top_m``, ``skeleton_scale`` and
-        ``source`` when it has them; without ground truth, over 3 frames or more,
-        ``consistency`` (:func:`~torchmocap.evaluation.track_consistency`: bone-length CV and
+        joints ``reprojection_px``; the sequence's ``hull_top_m``, ``skeleton_scale``,
+        ``source`` and ``subject_fit`` when it has them; without ground truth, over 3 frames or
+        more, ``consistency`` (:func:`~torchmocap.evaluation.track_consistency`: bone-length CV and
         jitter of the mapped keypoints, or of the joints); with a keypoint map, the track's
         scores in each tracked view's detections (``tracked_views``: median px of the full-size
         images, PCK) and with ``heldout`` those in the held-out view (``heldout``:
