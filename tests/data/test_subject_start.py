@@ -38,9 +38,10 @@ def _reprojection(meta, seq, frame=0):
 
 class TestKeypointStart:
     def test_feature_real_recording(self, p2s):
-        """An adult (1.75 m measured), one first pose reprojecting with a median of ~12 px in
-        1920-pixel-high images (the four-view DLT's own residual is ~11 px), and the map's
-        offsets the built-in ones times the body scale."""
+        """An adult (measured 1.73 m), one first pose reprojecting with a median of 12.5 px
+        in 1920-pixel-high images (14.1 px over the six fitted frames; the four-view DLT's
+        own residual is ~11 px), and the map's offsets the built-in ones times the body
+        scale (0.91)."""
         meta = keypoint_start(p2s.joints2d, p2s.joint_names, "body_25b", p2s.rig, {"frames": 6},
                               p2s.meta["scale"])
         fit = meta["subject_fit"]

@@ -435,9 +435,9 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
     joints2d, fmt, selection = (None, None, None) if kind is None else \
         _load_keypoints(chosen, kind, kp, frames, rig, scale)
     if kind is not None and h is not None:  # the tracked views' person chosen without it
-        tracked, _, selection = _load_keypoints([chosen[i] for i in seen], kind, kp, frames,
-                                                rig.subset(seen), scale)
-        joints2d[:, seen] = tracked
+        chosen_seen, _, selection = _load_keypoints([chosen[i] for i in seen], kind, kp,
+                                                    frames, rig.subset(seen), scale)
+        joints2d[:, seen] = chosen_seen
     mode = mask_mode(masks, chosen, kind is not None, files.root)
     T, C = len(frames), len(chosen)
     images = torch.zeros(T, C, canvas[1], canvas[0], 3, dtype=torch.uint8)
