@@ -63,6 +63,22 @@ def test_feature_beats_holding_the_first_pose(recording, preset, seeds):
         assert late < held - 10.0 * view.pixel_scale, (preset, seed, late, held)
 
 
+@pytest.mark.parametrize("preset", list(SMALL))
+def test_feature_a_view_subset(shared_data, tmp_path_factory, preset):
+    """``data.cameras``: two of the four views (masks, subject fit and track from them)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*codec's crop")
+        seq = load_recording(shared_data / "multiview" / "pose2sim_balancing", stop=3,
+                             scale=0.25, cameras=["cam04", "cam02"],
+                             mask_cache=tmp_path_factory.getbasetemp() / "subset_masks")
+    runtime = Runtime.from_sequence(seq)
+    assert runtime.rig.names == ["cam04", "cam02"] and seq.silhouettes.shape[1] == 2
+    tracker = build_tracker(tracker_config(preset, SMALL[preset]), runtime)
+    track = tracker.run(seq, progress=False)
+    assert track.theta.shape == (3, runtime.skeleton.num_dofs)
+    assert bool(torch.isfinite(track.theta).all())
+
+
 def test_feature_the_likelihood_never_sees_the_held_out_camera(recording, monkeypatch):
     """Every frame a held-out run's likelihood terms prepare holds the three tracked views'
     detections and masks, not cam01's; their cameras are the tracked ones."""
