@@ -12,6 +12,8 @@ passes the **runtime dependencies** a constructor asks for by parameter name:
 ``manifold``        the :class:`~torchmocap.ik.SensorManifold` of the tracking IMUs (None without)
 ``depth_camera``    the one-camera rig of the depth points (None without depth)
 ``keypoint_names``  the column names of the sequence's 2D detections (``joint_names``)
+``keypoint_map``    the subject's keypoint map fitted to the recording (``meta["keypoint_map"]``,
+                    the map's YAML schema as a dict), else the detections' format name
 ==================  ===============================================================================
 
 So a user's class enters a tracker through YAML alone::
@@ -53,7 +55,8 @@ __all__ = [
 ]
 
 #: Names of the runtime dependencies :func:`build` passes to constructors that accept them.
-DEPENDENCIES = ("skeleton", "body", "rig", "manifold", "depth_camera", "keypoint_names")
+DEPENDENCIES = ("skeleton", "body", "rig", "manifold", "depth_camera", "keypoint_names",
+                "keypoint_map")
 
 
 class ComponentError(ValueError):
@@ -65,7 +68,7 @@ class Runtime:
     """The runtime dependencies of components (see the module docstring).
 
     Attributes:
-        skeleton, body, rig, manifold, depth_camera, keypoint_names: see
+        skeleton, body, rig, manifold, depth_camera, keypoint_names, keypoint_map: see
             :data:`DEPENDENCIES`.
         sensors: ``{sensor: bone}`` of the tracking IMUs.
     """
@@ -77,14 +80,18 @@ class Runtime:
     sensors: dict[str, str] = field(default_factory=dict)
     depth_camera: Any = None
     keypoint_names: list[str] | None = None
+    keypoint_map: Any = None
 
     @classmethod
     def from_sequence(cls, sequence, skeleton=None, dtype: torch.dtype = torch.float32
                       ) -> Runtime:
         """Dependencies for tracking ``sequence``: the subject's skeleton (``skeleton``, else
         the ground truth's, else ``sequence.meta["subject_skeleton"]``), its capsule body, the
-        rig, the sensor manifold of the tracking IMUs and the names of the 2D detections'
-        columns (``sequence.joint_names``)."""
+        rig, the sensor manifold of the tracking IMUs, the names of the 2D detections'
+        columns (``sequence.joint_names``) and their keypoint map (the subject's fitted map
+        ``sequence.meta["keypoint_map"]``, else the format's name ``meta["keypoint_format"]``;
+        a dict or a string: config values, which ``hydra.utils.instantiate`` passes unchanged
+        where it would turn a dataclass into a config)."""
         from torchmocap.body import CapsuleBody
         from torchmocap.ik import SensorManifold
         from torchmocap.skeleton import Skeleton
@@ -95,8 +102,11 @@ class Runtime:
             elif isinstance(sequence.meta, dict) and "subject_skeleton" in sequence.meta:
                 skeleton = Skeleton.from_dict(sequence.meta["subject_skeleton"])
             else:
+                why = (sequence.meta.get("subject_fit") or {}).get("skipped") \
+                    if isinstance(sequence.meta, dict) else None
                 raise ValueError("skeleton: required when the sequence has neither ground truth "
-                                 "nor meta['subject_skeleton']")
+                                 "nor meta['subject_skeleton']" + (f" (no subject fit: {why})"
+                                                                    if why else ""))
         skeleton = skeleton.to(dtype)
         sensors: dict[str, str] = {}
         if sequence.imu is not None:
@@ -107,9 +117,13 @@ class Runtime:
         depth_camera = None if sequence.depth is None else sequence.depth.camera.to(dtype)
         keypoint_names = (list(sequence.joint_names) if sequence.joints2d is not None
                           and sequence.joint_names else None)
+        meta = sequence.meta if isinstance(sequence.meta, dict) else {}
+        keypoint_map = None
+        if keypoint_names is not None:
+            keypoint_map = meta.get("keypoint_map") or meta.get("keypoint_format")
         return cls(skeleton=skeleton, body=CapsuleBody(skeleton).to(dtype), rig=rig,
                    manifold=manifold, sensors=sensors, depth_camera=depth_camera,
-                   keypoint_names=keypoint_names)
+                   keypoint_names=keypoint_names, keypoint_map=keypoint_map)
 
 
 def _accepts(fn, name: str) -> tuple[bool, bool]:

@@ -161,7 +161,7 @@ def _number(x: float) -> float | None:
 
 def score_row(scores: ReprojectionScores, points: torch.Tensor, fps: float) -> dict:
     """The JSON-ready scores of one reconstruction ``points (T, K, 3)`` in one held-out view:
-    ``median_px``, ``mean_px``, ``pck05``, ``pck10``, ``compared``, ``missing``,
+    ``median_px``, ``mean_px``, ``pck_05``, ``pck_10``, ``compared``, ``missing``,
     ``frame_median_px`` (per frame), ``bone_cv_percent`` (per bone of :data:`CV_BONES`),
     ``bone_cv_mean``, ``jitter`` (m/s^2, :data:`LIMB_KEYPOINTS`)."""
     X = points.double()
@@ -169,7 +169,8 @@ def score_row(scores: ReprojectionScores, points: torch.Tensor, fps: float) -> d
     limbs = [KEYPOINTS.index(k) for k in LIMB_KEYPOINTS]
     return {
         "median_px": _number(scores.median_px), "mean_px": _number(scores.mean_px),
-        "pck05": _number(scores.pck_05), "pck10": _number(scores.pck_10),
+        "pck_05": _number(scores.pck_05),
+        "pck_10": _number(scores.pck_10),
         "compared": scores.num_compared, "missing": scores.num_missing,
         "frame_median_px": [_number(v) for v in scores.frame_median_px.tolist()],
         "bone_cv_percent": {bone_name(b): _number(v)

@@ -6,7 +6,7 @@ evaluation.heldout_camera=<cam>`` run per held-out camera, given with ``--runs``
 directory, or a folder searched for them; default ``runs/`` here). From a run the report reads
 
 * ``metrics.json``: ``tracker``, ``seed``, ``seconds_per_frame``, ``heldout`` (``median_px``,
-  ``mean_px``, ``pck05``, ``pck10``, optionally ``camera``) and ``consistency`` — shown as the
+  ``mean_px``, ``pck_05``, ``pck_10``, optionally ``camera``) and ``consistency`` — shown as the
   run reported them, in a table of their own;
 * ``.hydra/config.yaml``: ``data.path`` (must be the peers' recording), ``data.start`` /
   ``data.stride`` (the frames tracked) and ``evaluation.heldout_camera`` (when ``heldout`` does
@@ -57,7 +57,7 @@ RESULTS = HERE / "results"
 RUNS = HERE / "runs"
 RECORDING = HERE.parents[2] / "shared" / "data" / "multiview" / "pose2sim_balancing"
 #: ``heldout`` entries a run's metrics.json must have
-HELDOUT_KEYS = ("median_px", "mean_px", "pck05", "pck10")
+HELDOUT_KEYS = ("median_px", "mean_px", "pck_05", "pck_10")
 
 
 class RunError(ValueError):
@@ -208,8 +208,8 @@ def _missing_pct(row: dict) -> float | None:
 
 
 def _cells(row: dict) -> str:
-    return (f"{_f(row['median_px'])} | {_f(row['mean_px'])} | {_f(row['pck05'], '.1f', 100)} | "
-            f"{_f(row['pck10'], '.1f', 100)} | {_f(_missing_pct(row))} | "
+    return (f"{_f(row['median_px'])} | {_f(row['mean_px'])} | {_f(row['pck_05'], '.1f', 100)} | "
+            f"{_f(row['pck_10'], '.1f', 100)} | {_f(_missing_pct(row))} | "
             f"{_f(row['bone_cv_mean'], '.2f')} | {_f(row['jitter'], '.1f')} | "
             f"{_f(row.get('seconds_per_frame'), '.4f')}")
 
@@ -253,7 +253,7 @@ def table(peers: dict, tm: dict, notes: list[str]) -> str:
     for m in methods.values():
         rows = [m["rows"][c] for c in cams if c in m["rows"]]
         mean = {k: _mean([r.get(k) for r in rows]) for k in
-                ("median_px", "mean_px", "pck05", "pck10", "bone_cv_mean", "jitter",
+                ("median_px", "mean_px", "pck_05", "pck_10", "bone_cv_mean", "jitter",
                  "seconds_per_frame")}
         mean["compared"] = sum(r["compared"] for r in rows)
         mean["missing"] = sum(r["missing"] for r in rows)
@@ -282,7 +282,7 @@ def table(peers: dict, tm: dict, notes: list[str]) -> str:
             flat = ", ".join(f"{k} {v:.3g}" for k, v in cons.items()
                              if isinstance(v, (int, float))) if isinstance(cons, dict) else "–"
             lines.append(f"| {m['label']} | {c} | {_f(h['median_px'])} | {_f(h['mean_px'])} | "
-                         f"{_f(h['pck05'], '.1f', 100)} | {_f(h['pck10'], '.1f', 100)} | "
+                         f"{_f(h['pck_05'], '.1f', 100)} | {_f(h['pck_10'], '.1f', 100)} | "
                          f"{flat or '–'} |")
     return "\n".join(lines) + "\n"
 

@@ -121,6 +121,27 @@ class TestProject:
                                      torch.tensor([[320, 240]]))
         assert not bool(vis[0, 0])
 
+    def test_feature_far_points_stay_finite(self):
+        """Behind a distorting lens (or far off axis) a point is distorted from the monotonic
+        radius along its direction: finite pixels and gradients in float32, flagged invisible,
+        and the same pixel as the point at that radius."""
+        d = torch.tensor([[-0.2, 0.05, 0.001, -0.002, 0.01]])
+        K = torch.tensor([[[300.0, 0, 160], [0, 300, 120], [0, 0, 1]]])
+        R, t, size = torch.eye(3)[None], torch.zeros(1, 3), torch.tensor([[320, 240]])
+        pts = torch.tensor([[0.5, 0.2, -1.0], [40.0, 0.0, 1.0], [0.1, 0.0, 1.0]],
+                           requires_grad=True)
+        pix, _, vis = project_points(pts, K, R, t, d, size)
+        assert bool(torch.isfinite(pix).all()) and vis[0].tolist() == [False, False, True]
+        pix.sum().backward()
+        assert bool(torch.isfinite(pts.grad).all())
+        r = float(max_monotonic_radius(d.double()))
+        edge = project_points(torch.tensor([[r, 0.0, 1.0]]), K, R, t, d, size)[0]
+        torch.testing.assert_close(pix[0, 1], edge[0, 0], atol=0.05, rtol=0)
+        # inside the radius nothing changes
+        near = project_points(pts[2:].detach().double(), K.double(), R.double(),
+                              t.double(), d.double())[0]
+        torch.testing.assert_close(pix[0, 2].double(), near[0, 0], atol=1e-3, rtol=0)
+
     def test_gradcheck(self):
         rig = _random_rig(C=2, dist=True)
         pts = _points(4).requires_grad_(True)

@@ -1,7 +1,8 @@
 """Confidence-weighted DLT triangulation: exact on noiseless projections (with and without lens
 distortion), weights drop cameras, fewer than two views give NaN, and on the real
 pose2sim_balancing detections the triangulated keypoints reproject within the detector's noise
-and agree with Pose2Sim's own triangulation."""
+and agree with Pose2Sim's own triangulation. The robust variant drops the one wrong view of a
+point and keeps the views that agree."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import pytest
 import torch
 
 from torchmocap.cameras import CameraRig, make_ring_rig
-from torchmocap.cameras.triangulation import triangulate_dlt
+from torchmocap.cameras.triangulation import triangulate_dlt, triangulate_robust
 
 
 def _points(n=50, seed=0, dtype=torch.float64):
@@ -106,3 +107,56 @@ class TestTriangulateDLT:
         d = [float(np.linalg.norm(X[k].numpy() - world[names.index(n)]))
              for n, k in body25b.items()]
         assert np.median(d) < 0.05, d  # measured 2.9 cm (Pose2Sim drops views by error)
+
+
+class TestTriangulateRobust:
+    def test_feature_drops_the_wrong_view(self):
+        """One view 40 px off for half the points: those points lose exactly that view and come
+        out exact; the others keep every view; a plain DLT is pulled off."""
+        rig = make_ring_rig(4, image_size=(640, 480)).double()
+        X = _points(20)
+        pix = rig.project(X)[0].clone()  # (C, N, 2)
+        pix[1, :10] += torch.tensor([40.0, -30.0], dtype=X.dtype)
+        w = torch.ones(4, 20, dtype=X.dtype)
+        Y, used = triangulate_robust(pix, w, rig, max_error=5.0)
+        torch.testing.assert_close(Y, X, atol=1e-6, rtol=0)
+        assert bool((used[1, :10] == 0).all()) and int((used == 0).sum()) == 10
+        plain = triangulate_dlt(pix, w, rig)
+        assert float((plain[:10] - X[:10]).norm(dim=-1).min()) > 5e-3
+
+    def test_feature_noise_within_the_threshold_keeps_every_view(self):
+        rig = make_ring_rig(3).double()
+        X = _points(30, seed=2)
+        g = torch.Generator().manual_seed(0)
+        pix = rig.project(X)[0] + torch.randn(3, 30, 2, generator=g, dtype=X.dtype)
+        w = torch.ones(3, 30, dtype=X.dtype)
+        Y, used = triangulate_robust(pix, w, rig, max_error=10.0)
+        assert torch.equal(used, w)
+        torch.testing.assert_close(Y, triangulate_dlt(pix, w, rig))
+
+    def test_cardinality(self):
+        """Leading dims; a missed view stays missed; a point whose only two views disagree is
+        not triangulated (no two views agree), one whose two views agree is."""
+        rig = make_ring_rig(4).double()
+        X = _points(5)
+        pix = rig.project(X)[0]
+        pix = torch.stack([pix, pix.clone()])  # (T, C, N, 2)
+        pix[1, 0, 2] += 50.0
+        w = torch.ones(2, 4, 5, dtype=X.dtype)
+        w[:, 2:, 3:] = 0.0  # points 3 and 4: two views only
+        pix[:, 1, 4] += torch.tensor([50.0, -50.0], dtype=X.dtype)  # point 4's views disagree
+        Y, used = triangulate_robust(pix, w, rig, max_error=3.0, min_views=2)
+        assert Y.shape == (2, 5, 3) and used.shape == (2, 4, 5)
+        assert used[1, 0, 2] == 0 and int((used[0, :, :3] == 0).sum()) == 0
+        assert bool((used[:, :, 4] == 0).all()) and bool(torch.isnan(Y[:, 4]).all())
+        assert bool((used[:, :2, 3] == 1).all()) and bool((used[:, 2:, 3:] == 0).all())
+        torch.testing.assert_close(Y[:, :4], X[:4].expand(2, 4, 3), atol=1e-6, rtol=0)
+
+    def test_exception(self):
+        rig = make_ring_rig(4).double()
+        pix = torch.zeros(4, 5, 2, dtype=torch.float64)
+        for bad in (0.0, -1.0, float("inf"), True, "5"):
+            with pytest.raises(ValueError, match="max_error"):
+                triangulate_robust(pix, torch.ones(4, 5), rig, bad)
+        with pytest.raises(ValueError, match="weights"):
+            triangulate_robust(pix, torch.ones(4, 4), rig, 5.0)

@@ -151,7 +151,7 @@ def test_tune_without_training_clips_fails_cleanly(tmp_path):
 def test_tune_with_an_unknown_direction_fails_cleanly(tmp_path):
     """``tune.direction=sideways`` printed an error at the end of the run and exited 0; now it
     is refused before any clip is tracked."""
-    r = _console("torchmocap-tune", ["tune.direction=sideways", *TINY,
+    r = _console("torchmocap-tune", ["tune.direction=sideways", "tracker=p", *TINY,
                                      f"hydra.run.dir={tmp_path / 'r'}"], tmp_path)
     assert r.returncode == 2, r.stderr
     lines = r.stderr.strip().splitlines()

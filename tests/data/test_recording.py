@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from torchmocap.cameras import CameraError, read_toml_calibration, triangulate_dlt
+from torchmocap.data import split_heldout
 from torchmocap.data.bodytrack import load_bodytrack
 from torchmocap.data.recording import load_recording
 from torchmocap.data.recording_files import RecordingLayoutError, discover_recording
@@ -29,10 +30,11 @@ def p2s(shared_data):
 
 @pytest.fixture(scope="module")
 def seq(p2s):
-    """The whole trimmed recording at the default settings (scale 0.5)."""
+    """The whole trimmed recording at the default settings (scale 0.5) but without masks
+    (computed masks: TestMasks)."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        s = load_recording(p2s)
+        s = load_recording(p2s, masks="none")
     s.meta["warnings"] = [str(w.message) for w in caught]
     return s
 
@@ -46,6 +48,8 @@ def copy(tmp_path, p2s):
 
 
 def _load(path, **kw):
+    """A load without computed masks unless asked (they are tested in TestMasks)."""
+    kw.setdefault("masks", "none")
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*codec's crop")
         return load_recording(path, **kw)
@@ -67,7 +71,7 @@ class TestPose2Sim:
     def test_smoke(self, seq):
         assert seq.scenario == "recorded" and seq.fps == 60.0 and seq.num_frames == 10
         assert seq.images.shape == (10, 4, 960, 544, 3) and seq.images.dtype == torch.uint8
-        assert seq.silhouettes is None
+        assert seq.silhouettes is None and seq.meta["mask_source"] is None
         assert torch.equal(seq.view_dropped, torch.zeros(10, 4, dtype=torch.bool))
         assert seq.joints2d.shape == (10, 4, 25, 3) and seq.joints2d.dtype == torch.float32
         assert seq.joint_names == list(KEYPOINT_FORMATS["body_25b"])
@@ -88,6 +92,10 @@ class TestPose2Sim:
         assert m["calibrated_image_sizes"]["cam01"] == [1088, 1920]
         assert [p.split("/")[-1] for p in m["background"]["cam02"]] == ["cam02_ext.jpg"]
         assert m["images_bytes"] == 10 * 4 * 960 * 544 * 3
+        assert m["heldout_camera"] is None
+        # the subject fitted to the keypoints: skeleton, one first pose, the scaled map
+        assert len(m["initial_poses"]) == 1 and m["keypoint_map"]["format"] == "body_25b"
+        assert 1.6 < m["subject_fit"]["stature_m"] < 1.9
 
     def test_feature_images_are_the_videos_frames(self, seq, p2s):
         for c, cam in ((1, "cam02"), (3, "cam04")):
@@ -155,6 +163,7 @@ class TestPose2Sim:
         assert torch.equal(sub.images, seq.images[[2, 5, 8]][:, [2, 0]])
         assert torch.equal(sub.joints2d, seq.joints2d[[2, 5, 8]][:, [2, 0]])
         assert sub.rig.image_size.tolist() == [[544, 960], [540, 960]]
+        assert sub.meta["subject_fit"]["views"] == ["cam03", "cam01"]
 
     def test_feature_keypoint_settings(self, p2s):
         none = _load(p2s, cameras=[3], stop=2, scale=0.25, keypoints={"source": "none"})
@@ -164,6 +173,9 @@ class TestPose2Sim:
                        keypoints={"format": "body_25b", "min_confidence": 0.6})
         c = strict.joints2d[..., 2]
         assert bool(((c == 0) | (c >= 0.6)).all()) and bool((c == 0).any())
+        # one view: nothing to triangulate, so no subject (and the meta says why)
+        assert "one view" in strict.meta["subject_fit"]["skipped"]
+        assert "subject_skeleton" not in strict.meta
 
 
     def test_feature_save_round_trip(self, p2s, tmp_path):
@@ -191,7 +203,10 @@ class TestBodytrack:
         assert seq.rig.names == ["CAM1", "CAM2", "CAM3", "CAM4"]
         assert seq.joints2d is None and seq.meta["fps_source"] == "default"
         assert seq.meta["calibration_names"] == ["Camera1", "Camera2", "Camera3", "Camera4"]
-        assert seq.meta["masks"]["CAM1"].endswith("FG1")
+        assert seq.meta["masks"]["CAM1"].endswith("FG1") and seq.meta["mask_source"] == "files"
+        # no keypoints: the visual-hull start of the bodytrack loader
+        assert len(seq.meta["initial_poses"]) == 12 and "subject_fit" not in seq.meta
+        assert 1.5 < seq.meta["hull_top_m"] < 2.0
 
 
 class TestImageFolders:
@@ -247,6 +262,116 @@ class TestImageFolders:
         assert load_recording(root, fps=30).silhouettes is None  # auto: not every camera
         with pytest.raises(RecordingLayoutError, match=r"no mask folder .* \['cam3'\]"):
             load_recording(root, fps=30, masks="files")
+
+
+class TestMasks:
+    def test_feature_computed_and_cached(self, p2s, tmp_path):
+        """``masks: compute`` at the working scale: subject-sized masks lined up with the
+        images, cached (a second load reads the entry: equal masks, ``hit``) with a preview
+        PNG beside the entry; ``mask_settings`` reach the computation (another key)."""
+        from PIL import Image
+
+        kw = dict(stop=3, scale=0.25, masks="compute", mask_cache=tmp_path)
+        first = _load(p2s, **kw)
+        rep = first.meta["mask_report"]
+        assert first.silhouettes.shape == (3, 4, 480, 272) and not rep["cache"]["hit"]
+        frac = first.silhouettes.flatten(2).double().mean(-1)
+        assert bool((frac > 0.02).all()) and bool((frac < 0.2).all()), frac
+        with Image.open(rep["preview"]) as im:
+            assert im.size[1] == 480
+        assert rep["preview"] == rep["cache"]["path"] + ".png"
+        again = _load(p2s, **kw)
+        assert again.meta["mask_report"]["cache"]["hit"]
+        assert torch.equal(again.silhouettes, first.silhouettes)
+        other = _load(p2s, mask_settings={"threshold": 8.0}, **kw)
+        assert not other.meta["mask_report"]["cache"]["hit"]
+        assert other.meta["mask_report"]["settings"]["threshold"] == 8.0
+        assert int(other.silhouettes.sum()) < int(first.silhouettes.sum())
+
+    def test_feature_auto(self, copy):
+        """auto: computed with keypoints or plates (not cached without a cache folder; the
+        cropped views' padding is never foreground); none without either."""
+        auto = _load(copy, stop=2, scale=0.25, masks="auto")
+        assert auto.meta["mask_source"] == "computed" and auto.meta["masks"] is None
+        assert "cache" not in auto.meta["mask_report"] and auto.silhouettes.shape[1] == 4
+        assert not bool(auto.silhouettes[:, :2, :, 270:].any())
+        bare = _load(copy, stop=2, scale=0.25, masks="auto", keypoints={"source": "none"})
+        assert bare.silhouettes is None and bare.meta["mask_source"] is None
+
+    def test_exception(self, copy, p2s):
+        with pytest.raises(ValueError, match=r"data\.masks: compute needs the subject's keypoints "
+                                             r"or background plates"):
+            _load(copy, stop=2, scale=0.25, masks="compute", keypoints={"source": "none"})
+        with pytest.raises(ValueError, match=r"data\.masks: expected one of"):
+            _load(p2s, masks="computed")
+        with pytest.raises(ValueError, match=r"data\.mask_settings\.scale: the masks are "
+                                             r"computed at the images' working scale"):
+            _load(p2s, masks="compute", mask_settings={"scale": 0.5})
+        with pytest.raises(ValueError, match=r"data\.mask_settings: unknown setting\(s\) "
+                                             r"\['treshold'\]"):
+            _load(p2s, masks="compute", mask_settings={"treshold": 3.0})
+        with pytest.raises(ValueError, match=r"data\.mask_settings\.threshold"):
+            _load(p2s, masks="compute", mask_settings={"threshold": -1.0})
+
+
+class TestHeldOut:
+    def test_feature_the_tracked_views_never_use_the_held_out_one(self, p2s):
+        """With cam02 held out, the other views' detections and the subject fit are those of
+        a recording loaded without cam02; the held-out view keeps its own detections."""
+        held = _load(p2s, stop=3, scale=0.25, heldout_camera="cam02")
+        ref = _load(p2s, stop=3, scale=0.25, cameras=["cam01", "cam03", "cam04"])
+        assert held.meta["heldout_camera"] == "cam02" and held.num_cameras == 4
+        tracked, view = split_heldout(held)
+        assert tracked.rig.names == ["cam01", "cam03", "cam04"] and view.rig.names == ["cam02"]
+        assert tracked.meta["cameras"] == ["cam01", "cam03", "cam04"]
+        assert torch.equal(tracked.joints2d, ref.joints2d)
+        assert torch.equal(tracked.images, ref.images)
+        assert held.meta["initial_poses"] == ref.meta["initial_poses"]
+        assert held.meta["subject_skeleton"] == ref.meta["subject_skeleton"]
+        assert held.meta["subject_fit"]["views"] == ["cam01", "cam03", "cam04"]
+        full = _load(p2s, stop=3, scale=0.25)
+        assert torch.equal(view.joints2d, full.joints2d[:, 1:2])
+        assert held.meta["initial_poses"] != full.meta["initial_poses"]
+
+    @pytest.mark.slow
+    def test_feature_masks_of_the_tracked_views_never_use_it(self, p2s, tmp_path):
+        """The tracked views' computed masks are those of a recording without cam02 (the
+        multi-view check carves with the tracked views only); the held-out view's come from
+        every view, as a recording's masks without a held-out camera."""
+        kw = dict(stop=2, scale=0.25, masks="compute", mask_cache=tmp_path)
+        held = _load(p2s, heldout_camera="cam02", **kw)
+        ref = _load(p2s, cameras=["cam01", "cam03", "cam04"], **kw)
+        full = _load(p2s, **kw)
+        assert full.meta["mask_report"]["cache"]["hit"]  # computed for the held-out view
+        tracked, view = split_heldout(held)
+        assert torch.equal(tracked.silhouettes, ref.silhouettes)
+        assert torch.equal(view.silhouettes[:, 0, :, :270], full.silhouettes[:, 1, :, :270])
+        assert not torch.equal(full.silhouettes[:, [0, 2, 3]], tracked.silhouettes)
+
+    def test_feature_raw_detections_selected_without_it(self, p2s):
+        held = _load(p2s, stop=2, scale=0.25, cameras=["cam01", "cam02", "cam03"],
+                     keypoints={"source": "raw"}, heldout_camera=1)
+        ref = _load(p2s, stop=2, scale=0.25, cameras=["cam01", "cam03"],
+                    keypoints={"source": "raw"})
+        tracked, _ = split_heldout(held)
+        assert held.meta["heldout_camera"] == "cam02"
+        assert torch.equal(tracked.joints2d, ref.joints2d)
+        assert held.meta["selection"] == ref.meta["selection"]
+
+    def test_exception(self, p2s):
+        where = r"evaluation\.heldout_camera: "
+        with pytest.raises(ValueError, match=where + r"unknown camera 'cam09'"):
+            _load(p2s, stop=2, heldout_camera="cam09")
+        with pytest.raises(ValueError, match=where + r"camera 'cam02' is not among the loaded "
+                                                     r"cameras \(data\.cameras: \['cam01', "
+                                                     r"'cam03'\]\)"):
+            _load(p2s, stop=2, cameras=["cam01", "cam03"], heldout_camera="cam02")
+        with pytest.raises(ValueError, match=where + r"index 4 out of range"):
+            _load(p2s, stop=2, heldout_camera=4)
+        with pytest.raises(ValueError, match=where + r"holding out 'cam01' leaves no camera"):
+            _load(p2s, stop=2, cameras=["cam01"], heldout_camera="cam01")
+        with pytest.raises(ValueError, match=where + r"expected a camera name or index"):
+            _load(p2s, stop=2, heldout_camera=1.5)
 
 
 class TestConfig:

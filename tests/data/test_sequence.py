@@ -1,4 +1,5 @@
-"""Sequence: frame access, required modalities, atomic save/load round trip."""
+"""Sequence: frame access, required modalities, camera subsets and the held-out split, atomic
+save/load round trip."""
 
 from __future__ import annotations
 
@@ -49,6 +50,54 @@ class TestSequence:
         assert e.value.modality == "imu" and "partial" in str(e.value)
         with pytest.raises(ValueError, match="unknown modality"):
             seq.require("smell")
+
+    def test_select_cameras(self, seq):
+        """A camera subset: the rig's cameras and those views of every per-view array, in the
+        order asked; the rest shared, ``meta`` copied with the selected camera names."""
+        import dataclasses
+
+        from torchmocap.cameras import CameraRig
+
+        sub = seq.select_cameras([2, 0])
+        assert sub.num_cameras == 2 and sub.num_frames == 3
+        torch.testing.assert_close(sub.rig.K, seq.rig.K[[2, 0]])
+        for name in ("silhouettes", "images", "joints2d", "view_dropped"):
+            assert torch.equal(getattr(sub, name), getattr(seq, name)[:, [2, 0]]), name
+        assert sub.imu is seq.imu and sub.ground_truth is seq.ground_truth
+        named = dataclasses.replace(seq, meta={"cameras": ["a", "b", "c", "d"], "x": [1]})
+        other = named.select_cameras([3])
+        assert other.meta == {"cameras": ["d"], "x": [1]} and named.meta["cameras"][0] == "a"
+        # views smaller than the array: cropped to the largest selected one
+        rig = seq.rig
+        small = CameraRig(rig.K, rig.R, rig.t, [[80, 60], [70, 50], [80, 60], [70, 50]],
+                          rig.dist)
+        cropped = dataclasses.replace(seq, rig=small).select_cameras([1, 3])
+        assert cropped.images.shape[2:4] == (50, 70) and cropped.silhouettes.shape[2:] == (50, 70)
+        for bad in ([], [0, 0], [4], [-1]):
+            with pytest.raises(ValueError, match="indices"):
+                seq.select_cameras(bad)
+        with pytest.raises(ValueError, match="no cameras"):
+            Sequence(fps=25.0).select_cameras([0])
+
+    def test_split_heldout(self, seq):
+        """The held-out camera named in ``meta`` is split off; a tracker refuses the sequence
+        that still holds it."""
+        import dataclasses
+
+        from torchmocap.assembly import Runtime, build_tracker, tracker_config
+        from torchmocap.data import split_heldout
+
+        names = list(seq.rig.names)
+        assert split_heldout(seq) == (seq, None)
+        held = dataclasses.replace(seq, meta={**seq.meta, "heldout_camera": names[1]})
+        tracked, view = split_heldout(held)
+        assert tracked.rig.names == [names[0], *names[2:]] and view.rig.names == [names[1]]
+        assert torch.equal(view.images, seq.images[:, 1:2])
+        assert split_heldout(tracked) == (tracked, None)  # the camera is gone
+        tracker = build_tracker(tracker_config("g"), Runtime.from_sequence(seq))
+        with pytest.raises(ValueError, match=f"still holds its held-out camera '{names[1]}'"):
+            tracker.check_sequence(held)
+        tracker.check_sequence(tracked)
 
     def test_save_load_round_trip(self, seq, tmp_path):
         out = seq.save(tmp_path / "sequence")

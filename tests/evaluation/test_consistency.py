@@ -1,15 +1,17 @@
 """Bone-length constancy and jitter in closed form: a rigid motion has a bone CV of 0, known
 length sequences give their CV, a constant acceleration gives that jitter, missing frames are
-left out; and on Pose2Sim's own triangulation of the real recording (its TRC)."""
+left out; a track's joints are rigid and its mapped keypoints' limb segments are not; and on
+Pose2Sim's own triangulation of the real recording (its TRC)."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
 import torch
 
-from torchmocap.evaluation import bone_length_cv, jitter
+from torchmocap.evaluation import LIMB_KEYPOINTS, bone_length_cv, jitter, track_consistency
 from torchmocap.geometry import axis_angle_rotation
 
 F64 = torch.float64
@@ -102,6 +104,35 @@ class TestJitter:
             jitter(torch.zeros(5, 4, 3), 0.0)
         with pytest.raises(ValueError, match="positions"):
             jitter(torch.zeros(5, 4), 30.0)
+
+
+class TestTrackConsistency:
+    def test_feature(self):
+        """A skeleton's track: the joints' bones are rigid (CV 0 up to rounding); the mapped
+        keypoints' limb segments are not where a keypoint rides on the parent's bone (a hip on
+        the pelvis, the knee on the femur: bending the hip changes their distance), and a
+        track at constant velocity has no jitter, one with a kick has."""
+        from torchmocap.skeleton import human31
+
+        sk = human31().double()
+        T = 6
+        theta = sk.zero_pose((T,), dtype=F64)
+        theta[:, 0] = 0.1 * torch.arange(T, dtype=F64)  # constant velocity
+        theta[:, sk.dof_index("l_hip_flex")] = 0.2 * torch.arange(T, dtype=F64)
+        joints = track_consistency(sk, theta, 30.0)
+        assert joints["points"] == "joints"
+        assert joints["bone_length_cv_percent"]["mean"] < 1e-6
+        assert len(joints["bone_length_cv_percent"]["per_bone"]) == len(sk.joint_names) - 1
+        kp = track_consistency(sk, theta, 30.0, "body_25b")
+        cv = kp["bone_length_cv_percent"]["per_bone"]
+        assert kp["points"] == "keypoints" and set(cv) == {f"{a}-{b}" for a, b in LIMB_KEYPOINTS}
+        assert cv["LHip-LKnee"] > 0.1 and cv["RHip-RKnee"] < 1e-6 and cv["LKnee-LAnkle"] < 1e-6
+        assert kp["jitter_m_s2"]["per_point"]["RAnkle"] < 1e-6  # moves at constant velocity
+        assert kp["jitter_m_s2"]["per_point"]["LAnkle"] > 1.0  # the hip's rotation accelerates
+        kick = theta.clone()
+        kick[3, 0] += 0.05
+        assert track_consistency(sk, kick, 30.0)["jitter_m_s2"]["mean"] > 10.0
+        json.dumps(kp)
 
 
 def test_real_recording(shared_data):

@@ -1,16 +1,19 @@
 """Reprojection scores in a held-out view: closed forms (a known pixel offset gives that error
 and PCK), what is and is not compared, lens distortion, leave-one-camera-out exact on
-noiseless detections, and on the real pose2sim_balancing detections."""
+noiseless detections, and on the real pose2sim_balancing detections; a track scored in a view
+it did not see (its mapped keypoints against the view's detections, its body against the
+view's masks, the first pose held beside)."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
 import torch
 
 from torchmocap.cameras import CameraRig, make_ring_rig
-from torchmocap.evaluation import leave_one_camera_out, reprojection_scores
+from torchmocap.evaluation import heldout_view_scores, leave_one_camera_out, reprojection_scores
 
 F64 = torch.float64
 
@@ -153,6 +156,92 @@ class TestLeaveOneCameraOut:
             leave_one_camera_out(_detections(X, rig), rig)
         with pytest.raises(ValueError, match="detections"):
             leave_one_camera_out(_detections(X, _rig(3))[:, :2], _rig(3))
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """A moving human31 track (T=4), its runtime (body, BODY_25B map) and a one-camera
+    sequence whose detections are the track's mapped keypoints moved by (3, 4) px and
+    whose masks are the track's capsule silhouettes."""
+    from torchmocap.assembly import Runtime
+    from torchmocap.body import CapsuleBody
+    from torchmocap.data import Sequence
+    from torchmocap.likelihoods.silhouette import render_capsule_silhouettes
+    from torchmocap.skeleton import human31, keypoint_positions, load_keypoint_map
+
+    sk = human31().double()
+    body = CapsuleBody(sk).double()
+    rig = make_ring_rig(2, image_size=(160, 120)).double()
+    theta = sk.zero_pose((4,), dtype=F64)
+    theta[:, :2] = torch.linspace(0.0, 0.3, 4, dtype=F64)[:, None]  # walks 42 cm
+    theta[:, sk.dof_index("l_shoulder_abd")] = torch.linspace(0.0, 1.2, 4, dtype=F64)
+    kmap = load_keypoint_map("body_25b", sk)
+    kin = sk(theta)
+    x = keypoint_positions(kin.positions, kin.rotations, kmap)
+    pix = rig.project(x)[0]  # (T, C, 25, 2)
+    det = torch.cat([pix + torch.tensor([3.0, 4.0], dtype=F64), torch.ones_like(pix[..., :1])],
+                    -1)
+    masks = torch.stack([render_capsule_silhouettes(body, rig, th) for th in theta])
+    seq = Sequence(fps=30.0, rig=rig, joints2d=det, joint_names=list(kmap.format_keypoints),
+                   silhouettes=masks, meta={"scale": 0.5})
+    return Runtime(skeleton=sk, body=body, rig=rig, keypoint_map="body_25b"), seq, theta
+
+
+class TestHeldOutViewScores:
+    def test_feature_closed_form(self, scene):
+        """The track's keypoints are 5 px from the detections (10 px of the full-size images at
+        scale 0.5) and its body is the masks (IoU 1); the first pose held is worse in both."""
+        runtime, seq, theta = scene
+        v = heldout_view_scores(seq, runtime, theta, camera=1)
+        assert v.camera == seq.rig.names[1] and v.pixel_scale == 0.5
+        torch.testing.assert_close(v.scores.frame_median_px, torch.full((4,), 5.0, dtype=F64))
+        out = v.summary()
+        assert out["median_px"] == pytest.approx(10.0) and out["mean_px"] == pytest.approx(10.0)
+        assert out["num_compared"] == 100 and out["silhouette_iou"] == pytest.approx(1.0)
+        held = out["hold_first_pose"]
+        from torchmocap.skeleton import keypoint_positions, load_keypoint_map
+
+        kin = runtime.skeleton(theta[:1])
+        x0 = keypoint_positions(kin.positions, kin.rotations,
+                                load_keypoint_map("body_25b", runtime.skeleton))
+        ref = reprojection_scores(x0.expand(4, -1, -1), seq.joints2d[:, 1], seq.rig.subset([1]))
+        assert held["median_px"] == pytest.approx(ref.median_px / 0.5)
+        assert held["median_px"] > out["median_px"] + 3.0 and held["silhouette_iou"] < 0.9
+        assert out["keypoint_mapping"]["LHip"] == {"joint": "l_hip", "frame": "pelvis",
+                                                   "offset": [0.02, 0.0, 0.03]}
+        json.dumps(out)
+        # a view name works as well as an index; the masks can be left out
+        again = heldout_view_scores(seq, runtime, theta, seq.rig.names[1], silhouettes=False)
+        assert again.silhouette_iou is None and again.summary()["median_px"] == out["median_px"]
+
+    def test_feature_what_is_compared(self, scene):
+        """Detections at or below the threshold are not compared; without a keypoint map only
+        the masks are scored."""
+        import dataclasses
+
+        runtime, seq, theta = scene
+        low = seq.joints2d.clone()
+        low[:, 0, :10, 2] = 0.2
+        seq2 = dataclasses.replace(seq, joints2d=low)
+        v = heldout_view_scores(seq2, runtime, theta, 0, min_confidence=0.3)
+        assert v.scores.num_compared == 4 * 15
+        bare = heldout_view_scores(seq, dataclasses.replace(runtime, keypoint_map=None), theta)
+        assert bare.scores is None and "median_px" not in bare.summary()
+        assert bare.summary()["silhouette_iou"] == pytest.approx(1.0)
+
+    def test_exception(self, scene):
+        import dataclasses
+
+        runtime, seq, theta = scene
+        with pytest.raises(ValueError, match="camera: unknown camera 'cam9'"):
+            heldout_view_scores(seq, runtime, theta, "cam9")
+        with pytest.raises(ValueError, match=r"camera: expected a camera index in \[0, 2\)"):
+            heldout_view_scores(seq, runtime, theta, 2)
+        with pytest.raises(ValueError, match=r"theta: expected a track of shape \(4, D\)"):
+            heldout_view_scores(seq, runtime, theta[:3])
+        with pytest.raises(ValueError, match="neither 2D detections nor masks"):
+            heldout_view_scores(dataclasses.replace(seq, joints2d=None, silhouettes=None),
+                                runtime, theta)
 
 
 def test_real_recording(pose2sim_calibrated_rig, pose2sim_detections):

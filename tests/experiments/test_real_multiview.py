@@ -72,7 +72,7 @@ def test_peers_without_aniposelib_skip_its_rows_and_score_the_others(no_anipose_
             # the real rig and detections: tens of pixels on 1920-pixel-high images (a wrong
             # camera, axis or frame gives hundreds), nearly every keypoint within 10 % of the
             # subject's height
-            assert row["median_px"] < 40 and row["pck10"] > 0.9
+            assert row["median_px"] < 40 and row["pck_10"] > 0.9
             assert row["seconds_per_frame"] > 0 and len(row["frame_median_px"]) == 10
             assert 0 < row["bone_cv_mean"] < 15 and 0 < row["jitter"]
 
@@ -211,7 +211,7 @@ def _fake_run(run, fit=None, camera="cam02", recording="pose2sim_balancing", hel
                                                                 fps=60.0))
     metrics = {"tracker": "real_fake", "seed": 0, "seconds_per_frame": 1.25}
     if heldout:
-        metrics["heldout"] = {"median_px": 7.0, "mean_px": 9.0, "pck05": 0.5, "pck10": 0.8}
+        metrics["heldout"] = {"median_px": 7.0, "mean_px": 9.0, "pck_05": 0.5, "pck_10": 0.8}
         metrics["consistency"] = {"bone_cv_mean": 0.1, "jitter": 3.0}
     (run / "metrics.json").write_text(json.dumps(metrics))
     (run / ".hydra").mkdir()
@@ -237,11 +237,11 @@ def test_report_reads_a_torchmocap_run_and_names_what_is_missing(report, no_anip
     row = next(line for line in md.splitlines()
                if line.startswith("| torchmocap `real_fake` (seed 0) | cam02 |"))
     cells = [c.strip() for c in row.split("|")[3:-1]]
-    median, pck10, cv, spf = float(cells[0]), float(cells[3]), float(cells[5]), cells[7]
+    median, pck_10, cv, spf = float(cells[0]), float(cells[3]), float(cells[5]), cells[7]
     # scored by the protocol from the track, not copied from metrics.json (7 px there): the
     # fitted skeleton's keypoints land on the detections within tens of pixels, and a rigid
     # skeleton's bones barely change length
-    assert 5 < median < 40 and pck10 > 80 and cv < 1.0 and spf == "1.2500"
+    assert 5 < median < 40 and pck_10 > 80 and cv < 1.0 and spf == "1.2500"
     assert "missing** held-out camera(s) cam01, cam03, cam04" in md
     assert "tracked /somewhere/another_recording" in md
     assert f"failed run (failure.json): `{runs / 'failed'}`" in md

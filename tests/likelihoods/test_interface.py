@@ -104,6 +104,31 @@ def test_zero_weight_terms_are_neither_evaluated_nor_required(sk):
     assert lik.energy(Poses(sk.zero_pose((2,)), sk), obs).shape == (2,)
 
 
+def test_optional_terms_score_only_frames_that_have_what_they_read(sk):
+    """An optional term's modalities are not required; a frame without them is scored by the
+    other terms (and reports no missing evidence), a frame with them by all."""
+    body = CapsuleBody(sk)
+    a, b = ElbowTerm(0.3), EndpointTerm(body)
+    lik = WeightedSum({"a": a, "b": b}, {"a": 2.0, "b": 0.5}, optional=["b"])
+    assert lik.requires == ("joints2d",) and lik.active_terms() == ["a", "b"]
+    th = sk.zero_pose((3,))
+    bare = lik.prepare(Frame(index=0, time=0.0))
+    assert list(bare) == ["a"] and lik.present_terms(bare) == ["a"]
+    v = lik.energy(Poses(th, sk), bare)
+    assert torch.allclose(v, 2.0 * a.energy(Poses(th, sk), bare["a"]))
+    assert lik.evidence(bare) and lik.missing_evidence(bare) == []
+    masks = torch.zeros(4, 8, 8, dtype=torch.bool)
+    full = lik.prepare(Frame(index=0, time=0.0, silhouettes=masks))
+    assert list(full) == ["a", "b"]
+    assert torch.allclose(lik.energy(Poses(th, sk), full),
+                          v + 0.5 * b.energy(Poses(th, sk), full["b"]))
+    assert "optional=['b']" in repr(lik)
+    with pytest.raises(ValueError, match=r"optional: no term named \['c'\]"):
+        WeightedSum({"a": ElbowTerm()}, optional=["c"])
+    with pytest.raises(ValueError, match="optional: expected a list"):
+        WeightedSum({"a": ElbowTerm()}, optional="a")
+
+
 def test_forward_kinematics_runs_once_per_evaluation(sk):
     counting = CountingSkeleton(sk)
     body = CapsuleBody(sk)

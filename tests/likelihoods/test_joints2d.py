@@ -163,6 +163,25 @@ class TestJoints2DLikelihood:
         nan[0, 3, :2] = math.nan  # a missed joint may carry anything
         assert torch.allclose(term.energy(Poses(x, sk), term.prepare(_frame(nan))), base)
 
+    def test_feature_missed_detections_cost_nothing_even_at_infinite_pixels(self):
+        """A missed detection (weight 0) adds nothing, also where a pose projects its joint to
+        an infinite pixel (0 * inf must not make the energy NaN)."""
+        from torchmocap.likelihoods.joints2d import Joints2DObservation, joints2d_energy
+
+        class Far:
+            def project(self, X):
+                pix = X[..., None, :, :2] * 100.0
+                pix[..., 0, 1, :] = float("inf")  # joint 1 infinitely far in the camera
+                return pix, None, None
+
+        uv = torch.zeros(1, 2, 2, dtype=torch.float64)
+        obs = Joints2DObservation(uv, torch.tensor([[1.0, 0.0]], dtype=torch.float64),
+                                  torch.tensor([0, 1]), 1, 1.0)
+        X = torch.tensor([[[0.01, 0.0, 1.0], [0.0, 0.0, 1.0]]], dtype=torch.float64)
+        v = joints2d_energy(X, obs, Far(), 2.0)
+        assert bool(torch.isfinite(v).all())
+        assert float(v) == pytest.approx(math.log1p(1.0 / 4.0))
+
     def test_feature_confidences_weigh_the_detections(self, scene64):
         sk, rig, th, obs, g = scene64
         term = _term(sk, rig, reduction="mean")

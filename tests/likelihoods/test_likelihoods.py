@@ -624,3 +624,23 @@ def test_first_max_mask_equals_argmax_with_ties():
     mask = _first_max(x)
     assert torch.equal(mask, torch.arange(4)[:, None] == x.argmax(0))
     assert torch.equal(mask.sum(0), torch.ones(500, dtype=torch.long))
+
+
+def test_rendered_silhouettes_of_views_of_different_sizes():
+    """Views of different sizes share one array (the sequences' layout): each view is its own
+    camera's rendering in the top-left corner, False beyond it."""
+    from torchmocap.cameras import CameraRig
+    from torchmocap.likelihoods.silhouette import render_capsule_silhouettes
+
+    sk = human31()
+    body = CapsuleBody(sk)
+    base = make_ring_rig(2, image_size=(64, 48)).float()
+    rig = CameraRig(base.K, base.R, base.t, [[64, 48], [60, 46]], base.dist)
+    th = sk.zero_pose()
+    out = render_capsule_silhouettes(body, rig, th)
+    assert out.shape == (2, 48, 64) and bool(out[0].any())
+    small = render_capsule_silhouettes(body, rig.subset([1]), th)
+    assert small.shape == (1, 46, 60)
+    assert torch.equal(out[1, :46, :60], small[0])
+    assert not bool(out[1, 46:].any()) and not bool(out[1, :, 60:].any())
+    assert torch.equal(out[0], render_capsule_silhouettes(body, rig.subset([0]), th)[0])

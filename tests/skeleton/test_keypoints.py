@@ -135,6 +135,22 @@ class TestKeypointMap:
         with pytest.raises(KeypointMapError, match="bound to joints"):
             load_keypoint_map("body_25b", sk).attachment(small)
 
+    def test_module_dict_round_trip(self):
+        """``to_dict`` is the YAML schema: read back (bound to a skeleton), the map equals the
+        original, JSON survives it, and scaled offsets (a subject's fitted map) are kept."""
+        import dataclasses
+        import json
+
+        sk = human31().double()
+        kmap = load_keypoint_map("body_25b", sk)
+        fitted = dataclasses.replace(kmap, offsets=kmap.offsets * 0.9)
+        d = json.loads(json.dumps(fitted.to_dict()))
+        back = load_keypoint_map(d, sk)
+        assert back.names == kmap.names and back.frames == kmap.frames
+        assert back.format_keypoints == kmap.format_keypoints and back.format == "body_25b"
+        torch.testing.assert_close(back.offsets, kmap.offsets * 0.9)
+        assert torch.equal(back.joint_index, kmap.joint_index)
+
     def test_exception(self, tmp_path):
         sk = human31()
         with pytest.raises(KeypointMapError, match="unknown keypoint format 'body_99'"):

@@ -40,7 +40,7 @@ from torchmocap.cameras.rig import (
     make_ceiling_rig,
     make_ring_rig,
 )
-from torchmocap.cameras.triangulation import triangulate_dlt
+from torchmocap.cameras.triangulation import triangulate_dlt, triangulate_robust
 
 __all__ = [
     "UNITS",
@@ -74,6 +74,7 @@ __all__ = [
     "rig_from_dict",
     "rig_to_dict",
     "triangulate_dlt",
+    "triangulate_robust",
     "visual_hull",
     "world_to_camera",
     "write_rig",

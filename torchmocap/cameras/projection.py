@@ -192,7 +192,9 @@ def project_points(points: Tensor, K: Tensor, R: Tensor, t: Tensor, dist: Tensor
         ``pixels (*, C, N, 2)`` (u, v), ``depth (*, C, N)`` (camera z, world units) and
         ``visible (*, C, N)`` bool: in front of the camera, inside the distortion model's
         monotonic region and (if ``image_size`` is given) inside ``[-0.5, W-0.5) × [-0.5, H-0.5)``.
-        Points behind the camera still get finite pixels (depth clamped), flagged invisible.
+        Points behind the camera still get finite pixels (depth clamped), flagged invisible;
+        with lens distortion, points beyond :func:`max_monotonic_radius` are distorted from
+        that radius along their direction (finite, flagged invisible).
         Differentiable w.r.t. ``points`` (and the camera parameters).
 
     Example:
@@ -221,6 +223,11 @@ def project_points(points: Tensor, K: Tensor, R: Tensor, t: Tensor, dist: Tensor
         rmax = max_monotonic_radius(dist)  # (C,)
         r2 = (xy * xy).sum(-1)
         visible = visible & (r2 < (rmax * rmax)[:, None])
+        # beyond the monotonic radius (and behind the camera) the polynomial overflows: such a
+        # point is distorted from the radius limit along its direction (finite pixels, finite
+        # gradients; it is flagged invisible)
+        shrink = (rmax[:, None] / r2.clamp_min(1e-30).sqrt()).clamp(max=1.0)
+        xy = xy * shrink.unsqueeze(-1)
         # kornia works on pixels with per-camera K: bring C to the front
         lead = xy.shape[:-3]
         n = xy.shape[-2]

@@ -9,6 +9,11 @@ normalised cameras ``[R_c | t_c]`` — better conditioned than raw pixel rows an
 distorted lenses. A weight ``w_c = 0`` (missed detection, confidence 0) drops the camera; a
 point seen by fewer than two cameras is NaN.
 
+:func:`triangulate_robust` keeps, point by point, only the views that agree (within a pixel
+threshold) with the best two-view proposal, as a RANSAC over view pairs: one wrong detection (a
+keypoint put on the other leg, a bystander's wrist) no longer drags the point off. Pose2Sim
+similarly drops views by their reprojection error before it interpolates and filters.
+
 Shapes: ``C`` cameras, ``N`` points (keypoints), ``*`` leading dims (frames).
 
 Example:
@@ -23,10 +28,12 @@ Example:
 
 from __future__ import annotations
 
+import itertools
+
 import torch
 from torch import Tensor
 
-__all__ = ["triangulate_dlt"]
+__all__ = ["triangulate_dlt", "triangulate_robust"]
 
 
 def triangulate_dlt(pixels: Tensor, weights: Tensor, rig, undistort: bool = True,
@@ -80,3 +87,66 @@ def triangulate_dlt(pixels: Tensor, weights: Tensor, rig, undistort: bool = True
     pts = (X[..., :3] / X[..., 3:4]).to(pixels.dtype)
     enough = (w_n > 0).sum(-1) >= min_views
     return torch.where(enough[..., None], pts, torch.full_like(pts, float("nan")))
+
+
+def triangulate_robust(pixels: Tensor, weights: Tensor, rig, max_error: float,
+                       min_views: int = 2) -> tuple[Tensor, Tensor]:
+    """:func:`triangulate_dlt` from the views that agree, per point (RANSAC over view pairs).
+
+    For every point, each pair of views that see it proposes the point triangulated from the
+    two; a view is an inlier of a proposal when its reprojection error is at most
+    ``max_error``. The proposal with the most inliers wins (ties: the smaller sum of their
+    errors), and the point is triangulated from its inliers, confidence-weighted. A wrong
+    detection therefore cannot pull the point towards itself and push a good view out, as
+    dropping the worst view of an all-view fit does. A point without ``min_views`` views that
+    agree is NaN.
+
+    Args:
+        pixels: ``(*, C, N, 2)`` pixel coordinates (u, v) per camera and point.
+        weights: ``(*, C, N)`` non-negative weights (detection confidences; 0 = not seen).
+        rig: the :class:`~torchmocap.cameras.CameraRig` of the detections.
+        max_error: largest reprojection error (pixels of ``rig``'s images) of an inlier.
+        min_views: inliers a point needs (>= 2).
+
+    Returns:
+        ``points (*, N, 3)`` and the weights used ``(*, C, N)`` (0 for a view left out).
+
+    Raises:
+        ValueError: what :func:`triangulate_dlt` refuses, or ``max_error`` not a number > 0.
+
+    Example:
+        >>> from torchmocap.cameras import make_ring_rig
+        >>> rig = make_ring_rig(4).double()
+        >>> X = torch.tensor([[0.1, -0.2, 1.0]], dtype=torch.float64)
+        >>> pix = rig.project(X)[0].clone()                                  # (4, 1, 2)
+        >>> pix[2] += 60.0                                                   # one view wrong
+        >>> Y, used = triangulate_robust(pix, torch.ones(4, 1, dtype=X.dtype), rig, 5.0)
+        >>> used[:, 0].tolist(), bool(torch.allclose(X, Y, atol=1e-6))
+        ([1.0, 1.0, 0.0, 1.0], True)
+    """
+    if isinstance(max_error, bool) or not isinstance(max_error, (int, float)) \
+            or not max_error > 0 or max_error == float("inf"):
+        raise ValueError(f"max_error: expected a finite number of pixels > 0, got {max_error!r}")
+    triangulate_dlt(pixels, weights, rig, min_views=min_views)  # checks the inputs
+    seen = torch.isfinite(pixels).all(-1) & (weights > 0)
+    w = torch.where(seen, weights.to(pixels.dtype), torch.zeros_like(pixels[..., 0]))
+    uv = pixels.nan_to_num()
+    C = rig.num_cameras
+    best_in = torch.zeros_like(seen)
+    best_n = torch.zeros(seen.shape[:-2] + seen.shape[-1:], dtype=torch.long,
+                         device=seen.device)
+    best_cost = torch.full(best_n.shape, float("inf"), dtype=pixels.dtype, device=seen.device)
+    for a, b in itertools.combinations(range(C), 2):
+        pair = torch.zeros(C, 1, dtype=pixels.dtype, device=pixels.device)
+        pair[[a, b]] = 1.0
+        X = triangulate_dlt(pixels, w * pair, rig)  # (*, N, 3), NaN unless both see it
+        err = (rig.project(X.nan_to_num())[0] - uv).norm(dim=-1)  # (*, C, N)
+        inl = seen & (err <= max_error) & torch.isfinite(X).all(-1).unsqueeze(-2)
+        n = inl.sum(-2)
+        cost = torch.where(inl, err, torch.zeros_like(err)).sum(-2)
+        better = (n > best_n) | ((n == best_n) & (n > 0) & (cost < best_cost))
+        best_in = torch.where(better.unsqueeze(-2), inl, best_in)
+        best_n = torch.where(better, n, best_n)
+        best_cost = torch.where(better, cost, best_cost)
+    used = torch.where(best_in, w, torch.zeros_like(w))
+    return triangulate_dlt(pixels, used, rig, min_views=min_views), used

@@ -118,6 +118,7 @@ def run_batch(cfg: DictConfig, out: Path) -> dict:
     from torchmocap.cli.jobs import finish, thread_policy, validate_tracker
     from torchmocap.cli.outputs import print_summary, validate_outputs
     from torchmocap.cli.runs import load_sequence, reported_warnings
+    from torchmocap.data import split_heldout
     from torchmocap.filters.tracking.batched import BatchGroup, track_groups
 
     seeds = batch_seeds(cfg)
@@ -155,12 +156,13 @@ def run_batch(cfg: DictConfig, out: Path) -> dict:
             for (s, cs, fp, so), key in zip(todo, keys):
                 if key not in built:
                     seq = load_sequence(cs, min_frames=2)
-                    runtime = Runtime.from_sequence(seq)
+                    tracked, _ = split_heldout(seq)
+                    runtime = Runtime.from_sequence(tracked)
                     tracker = build_tracker(cs.tracker, runtime, seed=s)
-                    tracker.check_sequence(seq)
-                    built[key] = (seq, runtime, tracker)
-                seq, runtime, tracker = built[key]
-                groups.append(BatchGroup(tracker, seq, seed=s))
+                    tracker.check_sequence(tracked)
+                    built[key] = (seq, tracked, runtime, tracker)
+                seq, tracked, runtime, tracker = built[key]
+                groups.append(BatchGroup(tracker, tracked, seed=s))
                 jobs.append((s, cs, fp, so, seq, runtime, tracker))
             tracks = track_groups(groups, progress=bool(cfg.get("progress", True)),
                                   callbacks=[governor])

@@ -50,9 +50,12 @@ def validate_tracker(cfg) -> None:
 def finish(cfg, out: Path, seq, runtime, tracker, track, fingerprint: str,
            extra: dict | None = None) -> dict:
     """Score a finished track, write its files and ``metrics.json`` (last); returns the metrics
-    (``extra`` joins them). The evaluation's warnings are printed as
-    ``torchmocap-track: warning: ...``."""
+    (``extra`` joins them). ``seq`` is the run's whole sequence: with a held-out camera
+    (``evaluation.heldout_camera``) the track is of its other views and is scored in that one
+    (:func:`~torchmocap.data.split_heldout`); the overlays show every view. The evaluation's
+    warnings are printed as ``torchmocap-track: warning: ...``."""
     from torchmocap.cli.outputs import write_outputs
+    from torchmocap.data import split_heldout
     from torchmocap.evaluation import EvaluationWarning, evaluate_track
 
     metrics: dict[str, Any] = {
@@ -67,10 +70,13 @@ def finish(cfg, out: Path, seq, runtime, tracker, track, fingerprint: str,
         "clip": seq.meta.get("clip", {}),
         "fingerprint": fingerprint,
     }
+    tracked, heldout = split_heldout(seq)
+    evaluation = cfg.get("evaluation") or {}
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", EvaluationWarning)
-        scores = evaluate_track(seq, runtime, tracker, track, energy_vs_truth=bool(
-            cfg.get("diagnostics", {}).get("energy_vs_truth", False)))
+        scores = evaluate_track(tracked, runtime, tracker, track, energy_vs_truth=bool(
+            cfg.get("diagnostics", {}).get("energy_vs_truth", False)), heldout=heldout,
+            min_confidence=float(evaluation.get("min_confidence", 0.3)))
     for w in caught:
         if issubclass(w.category, EvaluationWarning):
             print(f"torchmocap-track: warning: {w.message}", file=sys.stderr)

@@ -93,9 +93,10 @@ def _write_plots(out, seq, runtime, theta, arrays, cfg):
 
 
 def _write_overlays(out, seq, runtime, theta, cfg) -> None:
-    """Overlay grids (``overlay_XXXX.png``: every view, the estimate and the truth, a legend) at
-    ``overlays`` evenly spaced frames, or of the last frame when there is no ground truth; with
-    ``video.enabled`` an animation of the grids over the whole track."""
+    """Overlay grids (``overlay_XXXX.png``: every view of ``seq`` — a held-out camera too,
+    labelled so —, the estimate, the truth or the detections, a legend) at ``overlays`` evenly
+    spaced tracked frames (the only frame of a one-frame sequence); with ``video.enabled`` an
+    animation of the grids over the whole track."""
     import logging
 
     import numpy as np
@@ -105,16 +106,19 @@ def _write_overlays(out, seq, runtime, theta, cfg) -> None:
 
     n = int(cfg.get("overlays", 3))
     video = cfg.get("video") or {}
-    if runtime.rig is None or (seq.silhouettes is None and seq.images is None):
+    if runtime.rig is None or seq.rig is None or (seq.silhouettes is None and seq.images is None):
         if video.get("enabled", False):
             logging.getLogger(__name__).warning("video: the sequence has no camera views; "
                                                 "no video written")
         return
     T = int(theta.shape[0])
-    kw = dict(rig=runtime.rig, body=runtime.body, scale=float(cfg.get("overlay_scale", 1.0)))
+    held = seq.meta.get("heldout_camera") if isinstance(seq.meta, dict) else None
+    labels = None if held is None else [f"{c} (held out)" if c == held else c
+                                        for c in seq.rig.names]
+    kw = dict(rig=seq.rig.to(runtime.rig.K.dtype), body=runtime.body, labels=labels,
+              scale=float(cfg.get("overlay_scale", 1.0)))
     if n > 0:
-        frames = ([T - 1] if seq.ground_truth is None else
-                  sorted({int(round(x)) for x in np.linspace(1, T - 1, n)}))
+        frames = ([0] if T == 1 else sorted({int(round(x)) for x in np.linspace(1, T - 1, n)}))
         for t, grid in track_overlay_frames(seq, runtime.skeleton, theta, frames, **kw):
             write_overlay_grid(out / f"overlay_{t:04d}.png", grid)
     if video.get("enabled", False):
@@ -144,10 +148,43 @@ def _write_glb(path, seq, runtime, theta, glb) -> None:
               up=str(glb.get("up", "y")))
 
 
+def _recording_rows(m: dict) -> list[tuple[str, str]]:
+    """Summary rows of a track without ground truth: the scores in the held-out view (and of
+    the first pose held), in the tracked views, bone-length CV and jitter."""
+    def px(d: dict) -> str:
+        iou = f", IoU {d['silhouette_iou']:.3f}" if "silhouette_iou" in d else ""
+        if "median_px" not in d:
+            return iou[2:] or "-"
+        return (f"{d['median_px']:.1f} px median, {d['mean_px']:.1f} mean, PCK@5% "
+                f"{d['pck_05']:.3f}, @10% {d['pck_10']:.3f}{iou}")
+
+    rows = [("tracker", m["tracker"]), ("frames", m["frames"]),
+            ("particles x layers", f"{m['num_particles']} x {m['layers']}"),
+            ("seconds / frame", f"{m['seconds_per_frame']:.3f}")]
+    h = m.get("heldout")
+    if h:
+        rows += [(f"held-out {h['camera']}", px(h)),
+                 ("  holding the first pose", px(h["hold_first_pose"]))]
+    for cam, d in (m.get("tracked_views") or {}).items():
+        rows.append((f"tracked {cam}", f"{d['median_px']:.1f} px median, PCK@10% "
+                                       f"{d['pck_10']:.3f}"))
+    c = m.get("consistency")
+    if c:
+        cv = c["bone_length_cv_percent"]
+        if cv:
+            rows.append((f"bone-length CV ({c['points']})", f"{cv['mean']:.2f} % mean"))
+        rows.append((f"jitter ({c['points']})", f"{c['jitter_m_s2']['mean']:.1f} m/s^2"))
+    return rows
+
+
 def print_summary(m: dict) -> None:
-    """The run's summary table on stdout (the metrics as JSON when there is no truth, without
-    the clip and the input files' digests)."""
+    """The run's summary table on stdout: the errors against the truth, or the scores without
+    it (held-out view, tracked views, consistency) when the run has them, else the metrics as
+    JSON (without the clip and the input files' digests)."""
     if "orientation_error_deg" not in m:
+        if "heldout" in m or "consistency" in m:
+            _print_rows(_recording_rows(m))
+            return
         print(json.dumps({k: v for k, v in m.items() if k not in ("clip", "inputs")}, indent=2))
         return
     o = m["orientation_error_deg"]
@@ -168,6 +205,10 @@ def print_summary(m: dict) -> None:
         rows.append(("holding the first pose", f"{held['orientation_error_deg']:.2f} deg, "
                                                f"{held['mpjpe_mm']:.1f} mm"))
     rows += [(f"  {b}", f"{v:.2f}") for b, v in o["per_bone"].items()]
+    _print_rows(rows)
+
+
+def _print_rows(rows: list[tuple[str, object]]) -> None:
     w = max(len(r[0]) for r in rows)
     for k, v in rows:
         print(f"{k:<{w}}  {v}")

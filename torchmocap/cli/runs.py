@@ -195,7 +195,8 @@ def sequence_cache_dir(cfg) -> Path | None:
 
 def load_sequence(cfg, min_frames: int = 2):
     """Build the ``data`` node (a sequence source with ``_target_``; its ``seed`` defaults to
-    the run's), noting every file it reads: ``meta["inputs"]`` holds their digests
+    the run's, and ``evaluation.heldout_camera`` is passed to a source that holds one out),
+    noting every file it reads: ``meta["inputs"]`` holds their digests
     (:mod:`torchmocap.inputs`).
 
     With ``sequence_cache: <dir>`` in the config, the sequence is saved under
@@ -217,6 +218,12 @@ def load_sequence(cfg, min_frames: int = 2):
         extra["seed"] = int(cfg.seed)
     if _accepts(fn, "min_frames")[0]:
         extra["min_frames"] = min_frames
+    held = (cfg.get("evaluation") or {}).get("heldout_camera")
+    if held is not None:
+        if not _accepts(fn, "heldout_camera")[0]:
+            raise ValueError(f"evaluation.heldout_camera: the data source {cfg.data._target_} "
+                             "cannot hold a camera out (a recording can: data=recording)")
+        extra["heldout_camera"] = held
     cache = sequence_cache_dir(cfg)
     key = None
     if cache is not None:

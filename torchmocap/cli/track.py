@@ -57,6 +57,7 @@ def _sequence_fingerprint(seq) -> str:
 def run(cfg: DictConfig, out: Path) -> dict:
     """Run the configured job; returns the metrics written to ``out/metrics.json``."""
     from torchmocap.assembly import Runtime, build_tracker
+    from torchmocap.data import split_heldout
     from torchmocap.filters.tracking.tracker import check_checkpoint
 
     if cfg.get("batch_seeds"):  # several seeds in one process: one run dir per seed
@@ -80,18 +81,19 @@ def run(cfg: DictConfig, out: Path) -> dict:
         seq = load_sequence(cfg, min_frames=2)
         inputs = seq.meta["inputs"]
         fingerprint = run_fingerprint(settings, inputs)
-        runtime = Runtime.from_sequence(seq)
+        tracked, _ = split_heldout(seq)  # the views the tracker sees (all but a held-out camera)
+        runtime = Runtime.from_sequence(tracked)
         try:
             tracker = build_tracker(cfg.tracker, runtime, seed=cfg.seed)
-            tracker.check_sequence(seq)
+            tracker.check_sequence(tracked)
         except ValueError as e:
             hint = seq.meta.get("suggested_tracker")
             if hint and cfg.tracker.get("name") != hint:
                 raise type(e)(f"{e} (this data is tracked with tracker={hint})") from e
             raise
-        track = tracker.run(seq, progress=bool(cfg.get("progress", True)), checkpoint=ckpt,
+        track = tracker.run(tracked, progress=bool(cfg.get("progress", True)), checkpoint=ckpt,
                             checkpoint_every=every,
-                            fingerprint=f"{fingerprint}-{_sequence_fingerprint(seq)}",
+                            fingerprint=f"{fingerprint}-{_sequence_fingerprint(tracked)}",
                             callbacks=[governor])
     return finish(cfg, out, seq, runtime, tracker, track, fingerprint,
                   {"threads": governor.summary(), "inputs": inputs, "warnings": warned})

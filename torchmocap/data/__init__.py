@@ -1,6 +1,7 @@
 """torchmocap.data: subjects fitted to motion clips, observation sequences and their synthesis."""
 
 from torchmocap.data.depth import DepthData
+from torchmocap.data.heldout import split_heldout
 from torchmocap.data.imu import ImuData, SensorPlacementError
 from torchmocap.data.scenario import Scenario, ScenarioError, build_rig, load_scenario
 from torchmocap.data.sequence import (
@@ -29,5 +30,6 @@ __all__ = [
     "SynthesisError",
     "build_rig",
     "load_scenario",
+    "split_heldout",
     "synthesize",
 ]

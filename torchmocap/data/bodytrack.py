@@ -18,20 +18,13 @@ that names each view's foreground.
 
 from __future__ import annotations
 
-import math
-import warnings
 from pathlib import Path
 
 import torch
 
-__all__ = ["SCALE_RANGE", "load_bodytrack", "load_bodytrack_sequence"]
+from torchmocap.data.subject_start import SCALE_RANGE
 
-#: the subject's height (human31 at 1.75 m) scaled to the hull within this range
-SCALE_RANGE = (0.85, 1.15)
-#: a view whose mask has more foreground than this is reported (inverted or all foreground)
-MAX_FOREGROUND = 0.5
-#: human31's standing height (metres) that the hull's top is compared with
-_HEIGHT = 1.75
+__all__ = ["SCALE_RANGE", "load_bodytrack", "load_bodytrack_sequence"]
 
 
 def _frame_file(folder: Path) -> Path | None:
@@ -119,48 +112,16 @@ def load_bodytrack_sequence(path: str | Path, scale: float = 1.0, headings: int 
         voxel: visual-hull voxel size (metres).
         seed: unused (the loader is deterministic); accepted like every data source's.
     """
-    from torchmocap.cameras import visual_hull
     from torchmocap.data.sequence import Sequence
-    from torchmocap.skeleton import human31
+    from torchmocap.data.subject_start import hull_start
 
-    if isinstance(headings, bool) or not isinstance(headings, int) or headings < 1:
-        raise ValueError(f"data.headings: expected an int >= 1, got {headings!r}")
     root = Path(str(path)).expanduser().absolute()
     rig, images, masks = load_bodytrack(root, float(scale))
-    fg = masks.flatten(1).float().mean(1).tolist()
-    views = ", ".join(f"FG{n} {100 * f:.1f} %" for n, f in zip(_numbers(rig), fg))
-    full = [f"FG{n}" for n, f in zip(_numbers(rig), fg) if f > MAX_FOREGROUND]
-    if full:
-        warnings.warn(f"data.path: the masks of {', '.join(full)} are more than "
-                      f"{100 * MAX_FOREGROUND:.0f} % foreground ({views}); a whole person covers "
-                      f"a few % of a view: inverted (person black) or all-foreground masks?",
-                      stacklevel=2)
-    hull = visual_hull(rig.double(), masks, [[-3, 3], [-3, 3], [-0.1, 2.3]], float(voxel))
-    pts = hull.largest_component().centers()
-    if pts.shape[0] == 0:
-        raise ValueError(f"data.path: the visual hull of the masks is empty: no point of the "
-                         f"room is foreground in every view (foreground read: {views}); masks "
-                         f"empty, or a calibration of other cameras ({root})")
-    top = float(pts[:, 2].max())
-    centre = pts.mean(0)
-    lo, hi = SCALE_RANGE
-    size = min(max(top / _HEIGHT, lo), hi)
-    if size != top / _HEIGHT:
-        warnings.warn(f"data.path: the visual hull is {top:.2f} m tall, a subject "
-                      f"{top / _HEIGHT:.2f} x human31's {_HEIGHT} m, outside the scale range "
-                      f"[{lo}, {hi}]: the skeleton is held at {size}; the masks (inverted, all "
-                      f"foreground) or the calibrations (swapped, of other cameras) are likely "
-                      f"wrong ({views})", stacklevel=2)
-    sk = human31().with_bone_lengths(scale=size)
-    base = sk.zero_pose(dtype=torch.float32)
-    base[0], base[1] = float(centre[0]), float(centre[1])
-    base[2] = float(pts[:, 2].min().clamp(max=0.1))  # feet on the hull's floor
-    cands = base.repeat(headings, 1)
-    cands[:, sk.dof_index("pelvis_rz")] = torch.arange(headings) * (2 * math.pi / headings)
+    start = hull_start(rig, masks, headings, float(voxel),
+                       labels=[f"FG{n}" for n in _numbers(rig)])
     colour = images[..., None].expand(*images.shape, 3).contiguous()
     return Sequence(
         fps=25.0, scenario="recorded", rig=rig.float(), silhouettes=masks[None],
         view_dropped=torch.zeros(1, rig.num_cameras, dtype=torch.bool), images=colour[None],
-        meta={"source": "bodytrack", "path": str(root), "subject_skeleton": sk.to_dict(),
-              "initial_poses": cands.tolist(), "hull_centre": centre.tolist(),
-              "hull_top_m": top, "skeleton_scale": size, "suggested_tracker": "real_frame"})
+        meta={"source": "bodytrack", "path": str(root), **start,
+              "suggested_tracker": "real_frame"})

@@ -39,6 +39,13 @@ from torchmocap.data.recording_files import (
     RecordingLayoutError,
     discover_recording,
 )
+from torchmocap.data.recording_masks import (
+    check_mask_settings,
+    mask_mode,
+    read_plates,
+    recording_masks,
+)
+from torchmocap.data.subject_start import hull_start, keypoint_start, subject_settings
 from torchmocap.io.frames import (
     IMAGE_SUFFIXES,
     FrameSourceError,
@@ -61,7 +68,6 @@ CROP_TOLERANCE = 16
 #: the ``keypoints`` settings and their defaults
 KEYPOINT_DEFAULTS = {"source": "auto", "format": "auto", "min_confidence": 0.1}
 _SOURCES = ("auto", "associated", "raw", "none")
-_MASKS = ("auto", "files", "none")
 #: frame rate of image folders without ``fps``
 DEFAULT_FPS = 25.0
 
@@ -86,6 +92,41 @@ class _LazySizes(Mapping):
         return len(self._cams)
 
 
+def _find_camera(cams: list[RecordingCamera], name: str) -> list[RecordingCamera]:
+    """The cameras called ``name``, else those with its number (:func:`camera_key`)."""
+    return [c for c in cams if c.name == name] or [c for c in cams if c.key == camera_key(name)]
+
+
+def _heldout_index(chosen: list[RecordingCamera], cams: list[RecordingCamera], heldout
+                   ) -> int | None:
+    """Index among the loaded cameras of the held-out one (by name or index in
+    ``data.cameras``' order), None for none."""
+    if heldout is None:
+        return None
+    where = "evaluation.heldout_camera"
+    names = [c.name for c in chosen]
+    if isinstance(heldout, bool) or not isinstance(heldout, (str, int)):
+        raise ValueError(f"{where}: expected a camera name or index, got {heldout!r}")
+    if isinstance(heldout, int):
+        if not 0 <= heldout < len(chosen):
+            raise ValueError(f"{where}: index {heldout} out of range for the {len(chosen)} "
+                             f"loaded cameras {names}")
+        h = heldout
+    else:
+        hits = _find_camera(chosen, heldout)
+        if len(hits) != 1:
+            if len(_find_camera(cams, heldout)) == 1:
+                raise ValueError(f"{where}: camera {heldout!r} is not among the loaded cameras "
+                                 f"(data.cameras: {names}); add it there to hold it out")
+            raise ValueError(f"{where}: unknown camera {heldout!r}; the recording has "
+                             f"{[c.name for c in cams]}")
+        h = chosen.index(hits[0])
+    if len(chosen) < 2:
+        raise ValueError(f"{where}: holding out {names[h]!r} leaves no camera to track with "
+                         f"(data.cameras: {names})")
+    return h
+
+
 def _choose_cameras(cams: list[RecordingCamera], cameras) -> list[RecordingCamera]:
     if cameras is None:
         return cams
@@ -102,8 +143,7 @@ def _choose_cameras(cams: list[RecordingCamera], cameras) -> list[RecordingCamer
                                  f"{len(cams)} cameras {names}")
             cam = cams[sel]
         else:
-            hits = [c for c in cams if c.name == sel] or \
-                [c for c in cams if c.key == camera_key(sel)]
+            hits = _find_camera(cams, sel)
             if len(hits) != 1:
                 raise ValueError(f"data.cameras: unknown camera {sel!r}; the recording has "
                                  f"{names}")
@@ -290,8 +330,10 @@ def _load_keypoints(cams: list[RecordingCamera], kind: str, kp: dict[str, Any], 
 def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | None = None,
                    start: int = 0, stop: int | None = None, stride: int = 1,
                    scale: float = 0.5, keypoints: Mapping[str, Any] | None = None,
-                   masks: str = "auto", fps: float | None = None,
-                   unit: str | float | None = None, seed: int = 0):
+                   masks: str = "auto", mask_settings: Mapping[str, Any] | None = None,
+                   mask_cache: str | Path | None = None, subject: Mapping[str, Any] | None = None,
+                   heldout_camera: str | int | None = None,
+                   fps: float | None = None, unit: str | float | None = None, seed: int = 0):
     """A recording folder as a :class:`~torchmocap.data.Sequence` (``scenario="recorded"``).
 
     Args:
@@ -306,8 +348,19 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
             (``auto``, ``body_25b``, ``body_25``, ``coco_17``, ``halpe_26``), ``min_confidence``
             (keypoints below it count as missed: confidence and position 0). Defaults:
             :data:`KEYPOINT_DEFAULTS`.
-        masks: ``auto`` (mask files when every camera has them), ``files`` (required),
-            ``none``.
+        masks: ``auto`` (mask files when every camera has them, else computed when the
+            recording has keypoints or background plates, else none), ``files`` (required),
+            ``compute``, ``none`` (:mod:`torchmocap.data.recording_masks`).
+        mask_settings: :class:`~torchmocap.data.masks.MaskSettings` of computed masks (their
+            dict form without ``scale``: the masks are computed at ``scale``).
+        mask_cache: folder caching computed masks (and their preview PNGs); None = no cache.
+        subject: settings of the subject fit to the keypoints
+            (:func:`~torchmocap.data.subject_start.subject_settings`: ``frames``,
+            ``max_error_px``, ``keypoint_map``).
+        heldout_camera: a camera (name, or index among the loaded ones) held out of what a
+            tracker sees: the masks of the other views, the subject fit and the person selection
+            use only the others; :func:`~torchmocap.data.heldout.split_heldout` splits the
+            sequence into the tracked views and the held-out one.
         fps: frame rate of image folders (videos carry theirs; default 25 with a warning).
         unit: length unit of the calibration's translations; None = the format's default
             (TOML and intri/extri metres, Bouguet millimetres).
@@ -325,7 +378,13 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
         ``calibrated_image_sizes``, ``keypoint_format``, ``keypoint_source``, ``selection``
         (per view: people per frame, the chosen person, frames with several people,
         reprojection agreement in px of the full-size images), ``masks`` (the folders or
-        None), ``background`` (plate paths per camera), ``images_bytes``.
+        None), ``mask_source`` (``files``, ``computed`` or None), ``mask_report`` (computed
+        masks: :func:`~torchmocap.data.masks.compute_masks`' report, cache entry, preview),
+        ``background`` (plate paths per camera), ``images_bytes``, ``heldout_camera`` (name
+        or None); with keypoints the fitted subject (``subject_skeleton``, ``initial_poses``,
+        ``keypoint_map``, ``skeleton_scale``, ``subject_fit``), with masks only a visual-hull
+        start (``subject_skeleton``, ``initial_poses`` one per heading, ``hull_top_m``): see
+        :mod:`torchmocap.data.subject_start`.
 
     Raises:
         RecordingLayoutError: missing folder, calibration, frames or keypoints (named).
@@ -345,9 +404,11 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
 
     files = discover_recording(path)
     chosen = _choose_cameras(files.cameras, cameras)
-    if masks not in _MASKS:
-        raise ValueError(f"data.masks: expected one of {list(_MASKS)}, got {masks!r}")
+    h = _heldout_index(chosen, files.cameras, heldout_camera)
+    seen = [i for i in range(len(chosen)) if i != h]
     kp = _keypoint_settings(keypoints)
+    fit_settings = subject_settings(subject)
+    settings = check_mask_settings(mask_settings)
     opened: dict[str, Any] = {}
     sources = [opened.setdefault(c.name, open_frames(c.frames)) for c in chosen]
     rate, length, fps_source = _check_streams(sources, chosen, fps, stop)
@@ -367,28 +428,19 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
     kind = _keypoint_kind(chosen, kp["source"], files.root)
     joints2d, fmt, selection = (None, None, None) if kind is None else \
         _load_keypoints(chosen, kind, kp, frames, rig, scale)
-    use_masks = masks == "files" or (masks == "auto" and all(c.masks for c in chosen))
-    if use_masks:
-        lacking = [c.name for c in chosen if c.masks is None]
-        if lacking:
-            raise RecordingLayoutError(f"{files.root}: no mask folder (masks/<cam>/ or FG<i>/) "
-                                       f"for camera(s) {lacking}")
+    if kind is not None and h is not None:  # the tracked views' person chosen without it
+        chosen_seen, _, selection = _load_keypoints([chosen[i] for i in seen], kind, kp,
+                                                    frames, rig.subset(seen), scale)
+        joints2d[:, seen] = chosen_seen
+    mode = mask_mode(masks, chosen, kind is not None, files.root)
     T, C = len(frames), len(chosen)
     images = torch.zeros(T, C, canvas[1], canvas[0], 3, dtype=torch.uint8)
     log.info("loading %d frames x %d views of %dx%d: %.2f GB of images", T, C, *canvas,
              images.numel() / 1e9)
     for c, src in enumerate(sources):
-        w, h = scaled_size(src.size, scale)
+        w, h_img = scaled_size(src.size, scale)
         for t, frame in enumerate(src.frames(frames.start, frames.stop, frames.step, scale)):
-            images[t, c, :h, :w].numpy()[:] = frame
-    silhouettes = None
-    if use_masks:
-        silhouettes = torch.zeros(T, C, canvas[1], canvas[0], dtype=torch.bool)
-        for c, (src, cam) in enumerate(zip(sources, chosen)):
-            w, h = scaled_size(src.size, scale)
-            for t, m in enumerate(_read_masks(cam, frames, src.size, scale)):
-                silhouettes[t, c, :h, :w].numpy()[:] = m
-
+            images[t, c, :h_img, :w].numpy()[:] = frame
     meta = {
         "source": "recording", "path": str(files.root), "calibration": str(files.calibration),
         "cameras": [c.name for c in chosen], "calibration_names": calibrated.names,
@@ -398,11 +450,52 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
         "calibrated_image_sizes": {c.name: [int(v) for v in calibrated.image_size[i].tolist()]
                                    for i, c in enumerate(chosen)},
         "keypoint_format": fmt, "keypoint_source": kind, "selection": selection,
-        "masks": {c.name: str(c.masks) for c in chosen} if use_masks else None,
+        "masks": {c.name: str(c.masks) for c in chosen} if mode == "files" else None,
+        "mask_source": {"files": "files", "compute": "computed"}.get(mode),
         "background": {c.name: [str(p) for p in c.background] for c in chosen},
         "images_bytes": images.numel(),
+        "heldout_camera": None if h is None else chosen[h].name,
     }
-    return Seq(fps=rate, scenario="recorded", rig=rig.scaled_images(scale).float(),
-               silhouettes=silhouettes, view_dropped=torch.zeros(T, C, dtype=torch.bool),
-               images=images, joints2d=joints2d,
-               joint_names=[] if fmt is None else list(keypoint_format(fmt)), meta=meta)
+    seq = Seq(fps=rate, scenario="recorded", rig=rig.scaled_images(scale).float(),
+              view_dropped=torch.zeros(T, C, dtype=torch.bool), images=images,
+              joints2d=joints2d, joint_names=[] if fmt is None else list(keypoint_format(fmt)),
+              meta=meta)
+    tracked = seq if h is None else seq.select_cameras(seen)
+    if mode == "files":
+        seq.silhouettes = torch.zeros(T, C, canvas[1], canvas[0], dtype=torch.bool)
+        for c, (src, cam) in enumerate(zip(sources, chosen)):
+            w, h_img = scaled_size(src.size, scale)
+            for t, m in enumerate(_read_masks(cam, frames, src.size, scale)):
+                seq.silhouettes[t, c, :h_img, :w].numpy()[:] = m
+    elif mode == "compute":
+        seq.silhouettes, meta["mask_report"] = _computed_masks(
+            seq, tracked, seen, h, read_plates(chosen, scale), settings, mask_cache)
+    if h is not None:
+        tracked.silhouettes = None if seq.silhouettes is None else \
+            seq.select_cameras(seen).silhouettes
+    if joints2d is not None and tracked.num_cameras < 2:
+        meta["subject_fit"] = {"skipped": f"the keypoints of one view ({tracked.rig.names}) "
+                                          "cannot be triangulated"}
+    elif joints2d is not None:
+        meta.update(keypoint_start(tracked.joints2d, tracked.joint_names, fmt, tracked.rig,
+                                   fit_settings, scale))
+    elif tracked.silhouettes is not None and tracked.num_cameras >= 2:
+        meta.update(hull_start(tracked.rig, tracked.silhouettes[0]))
+    return seq
+
+
+def _computed_masks(seq, tracked, seen: list[int], h: int | None, plates, settings, cache
+                    ) -> tuple[torch.Tensor, dict]:
+    """Masks of every view of ``seq``: the tracked views' computed from them alone, the
+    held-out view's (view ``h``) from every view (it scores the track, it is not tracked)."""
+    T, C, H, W = seq.images.shape[:4]
+    out = torch.zeros(T, C, H, W, dtype=torch.bool)
+    masks, report = recording_masks(tracked.images, tracked.rig, [plates[i] for i in seen],
+                                    tracked.joints2d, settings, cache)
+    out[:, seen, :masks.shape[2], :masks.shape[3]] = masks
+    if h is not None:
+        every, rep = recording_masks(seq.images, seq.rig, plates, seq.joints2d, settings, cache)
+        out[:, h] = every[:, h]
+        report["heldout_view"] = {k: rep[k] for k in ("mask_fraction", "cache", "preview")
+                                  if k in rep}
+    return out, report

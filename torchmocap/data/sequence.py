@@ -251,6 +251,45 @@ class Sequence:
         for t in range(self.num_frames):
             yield self.frame(t)
 
+    def select_cameras(self, indices) -> Sequence:
+        """The sequence seen by the cameras at ``indices`` only (in that order): the rig's
+        subset and those views of the silhouettes, view flags, images and 2D joints (image
+        arrays cropped to the largest selected view); the other modalities, the ground truth
+        and ``meta`` (a copy, ``meta["cameras"]`` the selected names when it lists cameras)
+        are shared.
+
+        Raises:
+            ValueError: no rig, an index out of range, repeated or no indices.
+        """
+        import copy
+
+        if self.rig is None:
+            raise ValueError("indices: the sequence has no cameras to select from")
+        idx = [int(i) for i in indices]
+        C = self.num_cameras
+        if not idx or len(set(idx)) != len(idx) or not all(0 <= i < C for i in idx):
+            raise ValueError(f"indices: expected distinct camera indices in [0, {C}), got "
+                             f"{list(indices)}")
+        rig = self.rig.subset(idx)
+        W, H = (int(v) for v in rig.image_size.max(0).values.tolist())
+        sel = torch.tensor(idx, dtype=torch.long)
+
+        def views(x, image=False):
+            if x is None:
+                return None
+            x = x.index_select(1, sel.to(x.device))
+            return x[:, :, :H, :W] if image else x
+
+        meta = copy.deepcopy(self.meta)
+        if isinstance(meta.get("cameras"), list) and len(meta["cameras"]) == C:
+            meta["cameras"] = [meta["cameras"][i] for i in idx]
+        return Sequence(fps=self.fps, scenario=self.scenario, rig=rig,
+                        silhouettes=views(self.silhouettes, True),
+                        view_dropped=views(self.view_dropped), images=views(self.images, True),
+                        imu=self.imu, depth=self.depth, joints2d=views(self.joints2d),
+                        joint_names=list(self.joint_names), ground_truth=self.ground_truth,
+                        meta=meta)
+
     # ------------------------------------------------------------------ persistence
     def save(self, path: str | os.PathLike, overwrite: bool = False) -> Path:
         """Write the sequence into directory ``path`` atomically (temp dir, then rename).

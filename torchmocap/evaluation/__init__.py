@@ -5,18 +5,28 @@ diagnostics. Library functions that the command line and the experiments both ca
 :func:`evaluate_track` scores a finished track in one call.
 
 Without ground truth: :func:`reprojection_scores` (pixel error and PCK of a reconstruction in
-one view's detections) and :func:`leave_one_camera_out` (:mod:`~torchmocap.evaluation.heldout`);
-:func:`bone_length_cv` and :func:`jitter` (:mod:`~torchmocap.evaluation.consistency`).
+one view's detections), :func:`leave_one_camera_out` and :func:`heldout_view_scores` (a track in
+a camera it did not see) (:mod:`~torchmocap.evaluation.heldout`); :func:`bone_length_cv`,
+:func:`jitter` and :func:`track_consistency` (:mod:`~torchmocap.evaluation.consistency`).
 """
 
-from torchmocap.evaluation.consistency import BoneLengthCV, Jitter, bone_length_cv, jitter
+from torchmocap.evaluation.consistency import (
+    LIMB_KEYPOINTS,
+    BoneLengthCV,
+    Jitter,
+    bone_length_cv,
+    jitter,
+    track_consistency,
+)
 from torchmocap.evaluation.diagnostics import (
     hypothesis_arrays,
     smoother_report,
     summarize_diagnostics,
 )
 from torchmocap.evaluation.heldout import (
+    HeldOutView,
     ReprojectionScores,
+    heldout_view_scores,
     leave_one_camera_out,
     reprojection_scores,
 )
@@ -36,9 +46,11 @@ from torchmocap.evaluation.views import reprojection_error, silhouette_agreement
 from torchmocap.evaluation.warnings import EvaluationWarning
 
 __all__ = [
+    "LIMB_KEYPOINTS",
     "VALIDATION_BONES_FALLBACK",
     "BoneLengthCV",
     "EvaluationWarning",
+    "HeldOutView",
     "Jitter",
     "ReprojectionScores",
     "TrackEvaluation",
@@ -47,6 +59,7 @@ __all__ = [
     "error_means",
     "evaluate_track",
     "held_dofs",
+    "heldout_view_scores",
     "hypothesis_arrays",
     "hypothesis_errors",
     "jitter",
@@ -58,6 +71,7 @@ __all__ = [
     "silhouette_agreement",
     "smoother_report",
     "summarize_diagnostics",
+    "track_consistency",
     "track_errors",
     "validation_bones",
 ]

@@ -28,7 +28,13 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["BoneLengthCV", "Jitter", "bone_length_cv", "jitter"]
+__all__ = ["LIMB_KEYPOINTS", "BoneLengthCV", "Jitter", "bone_length_cv", "jitter",
+           "track_consistency"]
+
+#: the limb segments between detector keypoints whose lengths a triangulation peer reports
+LIMB_KEYPOINTS = (("RHip", "RKnee"), ("RKnee", "RAnkle"), ("LHip", "LKnee"), ("LKnee", "LAnkle"),
+                  ("RShoulder", "RElbow"), ("RElbow", "RWrist"), ("LShoulder", "LElbow"),
+                  ("LElbow", "LWrist"))
 
 
 @dataclass
@@ -153,3 +159,50 @@ def jitter(positions: torch.Tensor, fps: float) -> Jitter:
     total = int(ok.sum())
     return Jitter(mean=float(a.sum() / total) if total else nan, per_joint=mean_over(0),
                   per_frame=mean_over(1))
+
+
+def track_consistency(skeleton, theta: torch.Tensor, fps: float, keypoint_map=None) -> dict:
+    """Bone-length constancy and jitter of a track, on the points a triangulation reports.
+
+    With a keypoint map the points are the track's mapped detector keypoints
+    (:func:`~torchmocap.skeleton.keypoint_positions`) and the bones the limb segments
+    between them (:data:`LIMB_KEYPOINTS`, those the map has): a skeleton's bones are rigid, but
+    a keypoint riding on the pelvis (a hip) and one on the femur (a knee) are not, so the CV
+    compares with a peer's triangulated keypoints. Without one, the joints and the skeleton's
+    bones (CV 0 up to rounding: the skeleton is rigid).
+
+    Args:
+        skeleton: the tracking :class:`~torchmocap.skeleton.Skeleton`.
+        theta: ``(T, D)`` the track, ``T >= 3``.
+        fps: frame rate.
+        keypoint_map: a :class:`~torchmocap.skeleton.KeypointMap`, format name or None.
+
+    Returns:
+        ``{"points": "keypoints" | "joints", "bone_length_cv_percent": {"per_bone": {a-b: %},
+        "mean": %}, "jitter_m_s2": {"mean": m/s^2, "per_point": {name: m/s^2}}}``.
+    """
+    from torchmocap.skeleton import keypoint_positions, load_keypoint_map
+
+    with torch.no_grad():
+        kin = skeleton(theta.to(skeleton.offsets.dtype))
+        if keypoint_map is not None:
+            kmap = load_keypoint_map(keypoint_map, skeleton)
+            x = keypoint_positions(kin.positions, kin.rotations, kmap)
+            names = list(kmap.names)
+            bones = [b for b in LIMB_KEYPOINTS if b[0] in names and b[1] in names]
+        else:
+            x, names = kin.positions, list(skeleton.joint_names)
+            bones = [(names[p], names[j]) for j, p in enumerate(skeleton.parents) if p >= 0]
+    x = x.double()
+    cv = bone_length_cv(x, bones, names) if bones else None
+    j = jitter(x, fps)
+
+    def r(v: float) -> float:
+        return round(float(v), 4)
+
+    return {"points": "keypoints" if keypoint_map is not None else "joints",
+            "bone_length_cv_percent": None if cv is None else {
+                "per_bone": {f"{a}-{b}": r(v) for (a, b), v in zip(bones, cv.cv_percent)},
+                "mean": r(cv.mean_percent)},
+            "jitter_m_s2": {"mean": r(j.mean),
+                            "per_point": {n: r(v) for n, v in zip(names, j.per_joint)}}}

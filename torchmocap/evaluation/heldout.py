@@ -1,5 +1,6 @@
-"""Scores against a view's own 2D detections: reprojection error and PCK, and the
-leave-one-camera-out protocol (REFERENCE §11).
+"""Scores against a view's own 2D detections: reprojection error and PCK, the
+leave-one-camera-out protocol (REFERENCE §11), and a track scored in a camera it did not see
+(:func:`heldout_view_scores`).
 
 A reconstruction ``points3d (T, K, 3)`` is projected into one camera (lens distortion included)
 and compared with that camera's detections ``(T, K, 3)`` = (u, v, confidence). Only keypoints
@@ -28,7 +29,8 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["ReprojectionScores", "leave_one_camera_out", "reprojection_scores"]
+__all__ = ["HeldOutView", "ReprojectionScores", "heldout_view_scores", "leave_one_camera_out",
+           "reprojection_scores"]
 
 
 @dataclass
@@ -167,3 +169,140 @@ def leave_one_camera_out(detections: torch.Tensor, rig, min_confidence: float = 
         X = triangulate(sub[..., :2], sub[..., 2], rig.subset(rest))
         out.append(reprojection_scores(X, detections[:, c], rig.subset([c]), min_confidence))
     return out
+
+
+@dataclass
+class HeldOutView:
+    """A track scored in one camera's detections and masks (:func:`heldout_view_scores`).
+
+    Attributes:
+        camera: the camera's name.
+        pixel_scale: the sequence's image scale; ``scores``' pixel errors are divided by it
+            (pixels of the full-size images).
+        scores: the track's :class:`ReprojectionScores` (``None`` without detections).
+        hold_first_pose: the same of a do-nothing track that keeps the first pose.
+        silhouette_iou: ``(T,)`` IoU of the capsule body with the view's masks (None without
+            masks).
+        hold_first_iou: the same of the first pose held.
+        mapping: ``{detector keypoint: {joint, frame, offset}}``: which model point each
+            compared detection is compared with (joint + offset in the frame joint's bone
+            frame, metres).
+        min_confidence: detections above it are compared.
+    """
+
+    camera: str
+    pixel_scale: float
+    scores: ReprojectionScores | None
+    hold_first_pose: ReprojectionScores | None
+    silhouette_iou: torch.Tensor | None
+    hold_first_iou: torch.Tensor | None
+    mapping: dict
+    min_confidence: float
+
+    def summary(self) -> dict:
+        """JSON-ready scores: ``median_px``, ``mean_px`` (full-size pixels), ``pck_05``,
+        ``pck_10``, counts, ``silhouette_iou`` (mean over frames), the same of the first pose
+        held (``hold_first_pose``), and the ``keypoint_mapping``."""
+        out: dict = {"camera": self.camera, "pixels": "full-size images",
+                     "image_scale": self.pixel_scale, "min_confidence": self.min_confidence}
+
+        def part(scores, iou):
+            d = {}
+            if scores is not None:
+                d.update(scores.summary())
+                d["median_px"] /= self.pixel_scale
+                d["mean_px"] /= self.pixel_scale
+            if iou is not None:
+                d["silhouette_iou"] = float(iou.mean())
+            return d
+
+        out.update(part(self.scores, self.silhouette_iou))
+        out["hold_first_pose"] = part(self.hold_first_pose, self.hold_first_iou)
+        if self.mapping:
+            out["keypoint_mapping"] = self.mapping
+        return out
+
+
+def heldout_view_scores(seq, runtime, theta: torch.Tensor, camera: int | str = 0,
+                        min_confidence: float = 0.3, silhouettes: bool = True) -> HeldOutView:
+    """Score a track ``theta (T, D)`` in camera ``camera`` of ``seq`` (a view the tracker did
+    not see: :func:`~torchmocap.data.split_heldout`).
+
+    The model points compared with the view's detections are the mapped keypoints of the
+    track (:func:`~torchmocap.skeleton.keypoint_positions` with ``runtime.keypoint_map``: the
+    subject's fitted map, offsets scaled with the body), projected by the camera with its lens
+    distortion: :func:`reprojection_scores` over every frame (the first pose was fitted without
+    the view too); with masks, the IoU of the capsule body (``runtime.body``) with them. The
+    do-nothing track that holds the first pose is scored alike.
+
+    Args:
+        seq: a :class:`~torchmocap.data.Sequence` holding the camera (its ``joints2d`` and
+            ``silhouettes``; pixels at ``seq.meta["scale"]``, default 1).
+        runtime: the :class:`~torchmocap.assembly.Runtime` the track was made with (skeleton,
+            body, keypoint names and map).
+        theta: ``(T, D)`` the track.
+        camera: index or name of the camera in ``seq.rig``.
+        min_confidence: detections above it are compared.
+        silhouettes: also score the masks (renders the body once per frame).
+
+    Returns:
+        :class:`HeldOutView`.
+
+    Raises:
+        ValueError: an unknown camera, a track of another length, a sequence with neither
+            detections nor masks.
+    """
+    from torchmocap.likelihoods.silhouette import render_capsule_silhouettes, silhouette_iou
+    from torchmocap.skeleton import keypoint_positions, load_keypoint_map
+
+    if seq.rig is None:
+        raise ValueError("seq: expected a sequence with cameras")
+    names = list(seq.rig.names)
+    if isinstance(camera, str):
+        if camera not in names:
+            raise ValueError(f"camera: unknown camera {camera!r}; the sequence has {names}")
+        camera = names.index(camera)
+    if isinstance(camera, bool) or not isinstance(camera, int) or not 0 <= camera < len(names):
+        raise ValueError(f"camera: expected a camera index in [0, {len(names)}) or a name, got "
+                         f"{camera!r}")
+    if seq.joints2d is None and seq.silhouettes is None:
+        raise ValueError("seq: the view has neither 2D detections nor masks to score a track in")
+    T = seq.num_frames
+    if theta.dim() != 2 or theta.shape[0] != T:
+        raise ValueError(f"theta: expected a track of shape ({T}, D), got {tuple(theta.shape)}")
+    sk = runtime.skeleton
+    rig = seq.rig.subset([camera])
+    scores = first = iou = iou_first = None
+    mapping: dict = {}
+    if seq.joints2d is not None and runtime.keypoint_map is not None:
+        kmap = load_keypoint_map(runtime.keypoint_map, sk)
+        cols = kmap.columns(list(seq.joint_names), "seq.joint_names")
+        det = seq.joints2d[:, camera].index_select(1, cols)
+
+        def points(th):
+            with torch.no_grad():
+                kin = sk(th.to(sk.offsets.dtype))
+                return keypoint_positions(kin.positions, kin.rotations, kmap).double()
+
+        scores = reprojection_scores(points(theta), det, rig, min_confidence)
+        first = reprojection_scores(points(theta[:1]).expand(T, -1, -1), det, rig,
+                                    min_confidence)
+        mapping = kmap.to_dict()["map"]
+    if silhouettes and seq.silhouettes is not None and runtime.body is not None:
+        with torch.no_grad():
+            masks = seq.silhouettes[:, camera]
+            H, W = masks.shape[-2:]
+
+            def model(th):
+                return render_capsule_silhouettes(runtime.body, rig,
+                                                  th.to(sk.offsets.dtype))[:, :H, :W]
+
+            iou = torch.stack([silhouette_iou(model(theta[t]), masks[t:t + 1])[0]
+                               for t in range(T)])
+            start = model(theta[0])
+            iou_first = torch.stack([silhouette_iou(start, masks[t:t + 1])[0]
+                                     for t in range(T)])
+    scale = seq.meta.get("scale", 1.0) if isinstance(seq.meta, dict) else 1.0
+    return HeldOutView(camera=names[camera], pixel_scale=float(scale), scores=scores,
+                       hold_first_pose=first, silhouette_iou=iou, hold_first_iou=iou_first,
+                       mapping=mapping, min_confidence=float(min_confidence))

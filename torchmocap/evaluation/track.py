@@ -8,11 +8,13 @@ from typing import Any
 
 import torch
 
+from torchmocap.evaluation.consistency import track_consistency
 from torchmocap.evaluation.diagnostics import (
     hypothesis_arrays,
     smoother_report,
     summarize_diagnostics,
 )
+from torchmocap.evaluation.heldout import heldout_view_scores
 from torchmocap.evaluation.truth import (
     energy_below_truth,
     error_means,
@@ -27,8 +29,9 @@ from torchmocap.likelihoods.silhouette import check_fit_iou
 
 __all__ = ["TrackEvaluation", "evaluate_track"]
 
-#: sequence meta entries reported beside the scores (a recording's hull top and subject scale)
-META_KEYS = ("hull_top_m", "skeleton_scale", "source")
+#: sequence meta entries reported beside the scores (a recording's hull top, subject scale and
+#: subject fit)
+META_KEYS = ("hull_top_m", "skeleton_scale", "source", "subject_fit")
 
 
 @dataclass
@@ -47,8 +50,8 @@ class TrackEvaluation:
     arrays: dict[str, Any] = field(default_factory=dict)
 
 
-def evaluate_track(seq, runtime, tracker, track, energy_vs_truth: bool = False
-                   ) -> TrackEvaluation:
+def evaluate_track(seq, runtime, tracker, track, energy_vs_truth: bool = False,
+                   heldout=None, min_confidence: float = 0.3) -> TrackEvaluation:
     """Score ``track`` (a :class:`~torchmocap.filters.Track` of ``seq`` by ``tracker``).
 
     Args:
@@ -60,6 +63,9 @@ def evaluate_track(seq, runtime, tracker, track, energy_vs_truth: bool = False
         track: the finished track.
         energy_vs_truth: also report the fraction of frames whose estimate has a lower energy
             than the truth (one energy evaluation per frame).
+        heldout: the camera held out of ``seq`` as a one-camera sequence
+            (:func:`~torchmocap.data.split_heldout`), or None.
+        min_confidence: detections above it are compared in the views' scores.
 
     Returns:
         :class:`TrackEvaluation`. ``metrics``: the diagnostics summary
@@ -70,8 +76,16 @@ def evaluate_track(seq, runtime, tracker, track, energy_vs_truth: bool = False
         ``filtered`` (the tracker's own errors) and each chain stage's errors, with skin
         markers ``marker_error_mm``, with hypotheses ``hypotheses``, and on request
         ``estimate_energy_below_truth``; without ground truth ``silhouette_iou``; with 2D
-        joints ``reprojection_px``; the sequence's ``hull_top_m``, ``skeleton_scale`` and
-        ``source`` when it has them. Warnings: :class:`~torchmocap.evaluation.EvaluationWarning`.
+        joints ``reprojection_px``; the sequence's ``hull_top_m``, ``skeleton_scale``,
+        ``source`` and ``subject_fit`` when it has them; without ground truth, over 3 frames or
+        more, ``consistency`` (:func:`~torchmocap.evaluation.track_consistency`: bone-length CV and
+        jitter of the mapped keypoints, or of the joints); with a keypoint map, the track's
+        scores in each tracked view's detections (``tracked_views``: median px of the full-size
+        images, PCK) and with ``heldout`` those in the held-out view (``heldout``:
+        :meth:`~torchmocap.evaluation.HeldOutView.summary`, with the first pose held beside
+        and the keypoint mapping; ``track.npz`` gets ``heldout_errors_px (T, K')`` and
+        ``heldout_silhouette_iou (T,)``). Warnings:
+        :class:`~torchmocap.evaluation.EvaluationWarning`.
     """
     sk = runtime.skeleton
     metrics: dict[str, Any] = dict(summarize_diagnostics(track.infos))
@@ -121,6 +135,23 @@ def evaluate_track(seq, runtime, tracker, track, energy_vs_truth: bool = False
             check_fit_iou(iou["mean_over_frames"], "silhouette_iou", EvaluationWarning)
     if seq.joints2d is not None and runtime.rig is not None:
         metrics["reprojection_px"] = reprojection_error(seq, sk, runtime.rig, track.theta)
+        if runtime.keypoint_map is not None:
+            metrics["tracked_views"] = {}
+            for c, name in enumerate(seq.rig.names):
+                v = heldout_view_scores(seq, runtime, track.theta, c, min_confidence,
+                                        silhouettes=False).summary()
+                metrics["tracked_views"][name] = {k: v[k] for k in ("median_px", "pck_05",
+                                                                    "pck_10", "num_compared")}
+    if seq.ground_truth is None and track.theta.shape[0] >= 3:
+        metrics["consistency"] = track_consistency(sk, track.theta, seq.fps,
+                                                   runtime.keypoint_map)
+    if heldout is not None:
+        view = heldout_view_scores(heldout, runtime, track.theta, 0, min_confidence)
+        metrics["heldout"] = view.summary()
+        if view.scores is not None:
+            arrays["heldout_errors_px"] = (view.scores.errors_px / view.pixel_scale).numpy()
+        if view.silhouette_iou is not None:
+            arrays["heldout_silhouette_iou"] = view.silhouette_iou.numpy()
     for k in META_KEYS:
         if k in seq.meta:
             metrics[k] = seq.meta[k]

@@ -37,7 +37,7 @@ Example:
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import torch
@@ -138,10 +138,13 @@ class WeightedSum(Likelihood):
         terms: ``{name: Likelihood}``.
         weights: ``{name: weight}``; missing names weigh 1. A weight of 0 switches a term off
             (not evaluated, its modalities not required). Weights must be finite and ``>= 0``.
+        optional: names of terms used only in frames that hold what they read (e.g. the
+            silhouette term of a recording that may have no masks): their modalities are not
+            required, and a frame without them is scored by the other terms.
     """
 
-    def __init__(self, terms: Mapping[str, Likelihood], weights: Mapping[str, float] | None = None
-                 ) -> None:
+    def __init__(self, terms: Mapping[str, Likelihood], weights: Mapping[str, float] | None = None,
+                 optional: Sequence[str] = ()) -> None:
         super().__init__()
         if not isinstance(terms, Mapping) or not terms:
             raise ValueError("terms: expected a non-empty mapping {name: Likelihood}")
@@ -160,8 +163,14 @@ class WeightedSum(Likelihood):
                     or v < 0:
                 raise ValueError(f"weights.{name}: expected a finite number >= 0, got {v!r}")
             w[name] = float(v)
+        if isinstance(optional, str) or not all(isinstance(k, str) for k in optional):
+            raise ValueError(f"optional: expected a list of term names, got {optional!r}")
+        stray = sorted(set(optional) - set(terms))
+        if stray:
+            raise ValueError(f"optional: no term named {stray}; terms are {sorted(terms)}")
         self.terms = nn.ModuleDict(dict(terms))
         self._weights = w
+        self.optional = tuple(optional)
 
     @property
     def weights(self) -> dict[str, float]:
@@ -179,26 +188,36 @@ class WeightedSum(Likelihood):
     def requires(self) -> tuple[str, ...]:  # type: ignore[override]
         out: list[str] = []
         for k in self.active_terms():
-            out += [m for m in self.terms[k].requires if m not in out]
+            if k not in self.optional:
+                out += [m for m in self.terms[k].requires if m not in out]
         return tuple(out)
 
     def prepare(self, frame: Any) -> dict[str, Any]:
-        return {k: self.terms[k].prepare(frame) for k in self.active_terms()}
+        """Every active term's prepared observation (an optional term's only when the frame
+        holds what it reads)."""
+        return {k: self.terms[k].prepare(frame) for k in self.active_terms()
+                if k not in self.optional
+                or all(getattr(frame, m, None) is not None for m in self.terms[k].requires)}
+
+    def present_terms(self, observation: Mapping[str, Any]) -> list[str]:
+        """The active terms scoring this prepared frame (an optional term may be absent)."""
+        return [k for k in self.active_terms() if k in observation]
 
     def evidence(self, observation: Mapping[str, Any]) -> bool:
-        """True when at least one active term has evidence (see :meth:`missing_evidence`)."""
-        return len(self.missing_evidence(observation)) < len(self.active_terms())
+        """True when at least one present term has evidence (see :meth:`missing_evidence`)."""
+        return len(self.missing_evidence(observation)) < len(self.present_terms(observation))
 
     def missing_evidence(self, observation: Mapping[str, Any]) -> list[str]:
-        """Names of the active terms without usable evidence in this frame."""
-        return [k for k in self.active_terms() if not self.terms[k].evidence(observation[k])]
+        """Names of the present terms without usable evidence in this frame."""
+        return [k for k in self.present_terms(observation)
+                if not self.terms[k].evidence(observation[k])]
 
     def term_energies(self, poses: Poses, observation: Mapping[str, Any]
                       ) -> dict[str, torch.Tensor]:
-        """Unweighted energy ``(P,)`` of every active term."""
+        """Unweighted energy ``(P,)`` of every present term."""
         return {k: check_energy(self.terms[k].energy(poses, observation[k]), poses.num,
                                 f"terms.{k}")
-                for k in self.active_terms()}
+                for k in self.present_terms(observation)}
 
     def energy(self, poses: Poses, observation: Mapping[str, Any]) -> torch.Tensor:
         total = None
@@ -208,7 +227,8 @@ class WeightedSum(Likelihood):
         return total
 
     def extra_repr(self) -> str:
-        return f"weights={self.weights}"
+        return f"weights={self.weights}" + (f", optional={list(self.optional)}"
+                                            if self.optional else "")
 
 
 class FrameEnergy:

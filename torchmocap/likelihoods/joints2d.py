@@ -191,7 +191,10 @@ def joints2d_energy(positions: torch.Tensor, observation: Joints2DObservation, r
     z = (r * r).sum(-1) / (scale_px * scale_px)
     rho, _ = robust_cost(z, robust)
     w = observation.weight.to(pix)
-    return (w * rho).sum((-1, -2)) * _norm_factor(observation, reduction)
+    # a missed detection (weight 0) costs nothing, also where a pose projects its joint to an
+    # infinite pixel (behind a distorting lens: 0 * inf would be NaN)
+    return torch.where(w > 0, w * rho, torch.zeros_like(rho)).sum((-1, -2)) \
+        * _norm_factor(observation, reduction)
 
 
 def predicted_hidden(positions: torch.Tensor, joints: torch.Tensor, body, rig) -> torch.Tensor:

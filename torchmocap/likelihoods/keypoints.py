@@ -80,7 +80,9 @@ class KeypointLikelihood(Likelihood):
         keypoint_names: the ``K`` column names of the detections (runtime dependency; default:
             the format's own order, ``keypoint_map.format_keypoints``).
         keypoint_map: a built-in format name (``body_25b``, ``body_25``, ``coco_17``,
-            ``halpe_26``), a map YAML path, or a :class:`~torchmocap.skeleton.KeypointMap`.
+            ``halpe_26``), a map YAML path, or a :class:`~torchmocap.skeleton.KeypointMap`
+            (runtime dependency: the subject's map fitted to the recording, with its offsets
+            scaled to the body, else the detections' format).
         scale_px: robust scale ``s`` in pixels at the detections' image scale: one number or a
             list with one per camera.
         robust: ``"cauchy"`` (default), ``"geman_mcclure"``, ``"huber"`` or ``"gaussian"``.

@@ -516,12 +516,12 @@ def render_capsule_silhouettes(body, rig, theta: torch.Tensor, chunk: int = 2000
 
     Every pixel centre is tested against every projected capsule (the same stadium model the
     likelihood uses), in chunks of pixels. Used for overlays, IoU reports and test oracles.
+    ``(H, W)`` is the largest camera's image size; a smaller view fills the top-left corner
+    (False beyond it), the layout of a sequence's silhouettes.
     """
     st = _stadiums(body.endpoints(body.skeleton(theta[None])), body.radii, rig)
-    sizes = {tuple(int(v) for v in s) for s in rig.image_size.tolist()}
-    if len(sizes) != 1:
-        raise ValueError(f"rig: all cameras need one image size, got {sorted(sizes)}")
-    W, H = sizes.pop()
+    sizes = rig.image_size.long().cpu()
+    W, H = int(sizes[:, 0].max()), int(sizes[:, 1].max())
     ys, xs = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
     q = torch.stack([xs, ys], -1).reshape(-1, 2).to(st.ax.dtype)  # integer pixel centres
     C = st.ax.shape[0]
@@ -529,7 +529,10 @@ def render_capsule_silhouettes(body, rig, theta: torch.Tensor, chunk: int = 2000
     for a in range(0, H * W, chunk):
         qq = q[a:a + chunk][None].expand(C, -1, -1)
         out[:, a:a + chunk] = _coverage_margin(qq, st, smooth=False)[..., 0] > 0
-    return out.reshape(C, H, W)
+    out = out.reshape(C, H, W)
+    for c, (w, h) in enumerate(sizes.tolist()):
+        out[c, h:], out[c, :, w:] = False, False
+    return out
 
 
 def soft_capsule_silhouettes(endpoints: torch.Tensor, radii: torch.Tensor, rig,

@@ -135,6 +135,15 @@ class KeypointMap:
         riding = rest_offsets.index_select(0, j) * (j != f)[:, None].to(rest_offsets)
         return self.offsets.to(rest_offsets) + riding
 
+    def to_dict(self) -> dict:
+        """The map in its YAML schema (``format``, ``keypoints``, ``map``; offsets as lists),
+        JSON-safe: :func:`load_keypoint_map` reads it back (e.g. a subject's fitted map stored
+        in a sequence's ``meta``)."""
+        return {"format": self.format, "keypoints": list(self.format_keypoints),
+                "map": {n: {"joint": j, "frame": f, "offset": [float(v) for v in o]}
+                        for n, j, f, o in zip(self.names, self.joints, self.frames,
+                                              self.offsets.tolist())}}
+
     def bind(self, skeleton: Skeleton) -> KeypointMap:
         """The same map resolved against another skeleton's joints (by name)."""
         return _resolve(self.format, self.format_keypoints,
@@ -227,13 +236,14 @@ def _parse(data, origin: str, skeleton: Skeleton | None) -> KeypointMap:
     return _resolve(fmt, keypoints, parsed, skeleton, origin)
 
 
-def load_keypoint_map(name_or_path: str | Path | KeypointMap,
+def load_keypoint_map(name_or_path: str | Path | KeypointMap | Mapping,
                       skeleton: Skeleton | None = None) -> KeypointMap:
     """A built-in keypoint map by format name (case-insensitive: ``"BODY_25B"`` is
-    ``body_25b``), or a map from a YAML path, bound to ``skeleton``.
+    ``body_25b``), or a map from a YAML path or its parsed content, bound to ``skeleton``.
 
     Args:
-        name_or_path: format name, YAML path, or a :class:`KeypointMap` (re-bound).
+        name_or_path: format name, YAML path, a mapping in the YAML schema (e.g.
+            :meth:`KeypointMap.to_dict`), or a :class:`KeypointMap` (re-bound).
         skeleton: the skeleton whose joints the keypoints ride on (default: the preset named
             by the map's ``skeleton`` key, human31).
 
@@ -243,6 +253,8 @@ def load_keypoint_map(name_or_path: str | Path | KeypointMap,
     """
     if isinstance(name_or_path, KeypointMap):
         return name_or_path if skeleton is None else name_or_path.bind(skeleton)
+    if isinstance(name_or_path, Mapping):
+        return _parse(name_or_path, "keypoint map (mapping)", skeleton)
     import yaml
 
     from torchmocap.inputs import read_text_input, yaml_error_line

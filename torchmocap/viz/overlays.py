@@ -25,6 +25,7 @@ from PIL import Image, ImageDraw, ImageFont
 from torch import Tensor
 
 __all__ = [
+    "DETECTION_COLOR",
     "ESTIMATE_COLOR",
     "MASK_TINT",
     "TITLE_HEIGHT",
@@ -42,6 +43,8 @@ ESTIMATE_COLOR = (255, 128, 0)
 _CAPSULE_COLOR = (255, 200, 140)
 #: colour of the ground truth's skeleton (green)
 TRUTH_COLOR = (40, 210, 40)
+#: colour of the 2D keypoint detections (cyan)
+DETECTION_COLOR = (0, 220, 255)
 #: tint of the observed foreground mask (blue, 35 % opacity)
 MASK_TINT = (70, 110, 255)
 _MASK_ALPHA = 0.35
@@ -121,6 +124,7 @@ def _panel(image: np.ndarray, mask: Any, cell: tuple[int, int], scale: float) ->
     rgb = image.astype(np.float32)
     if mask is not None:
         m = _numpy(mask).astype(bool)
+
         if m.shape != rgb.shape[:2]:
             raise ValueError(f"masks: expected {rgb.shape[:2]} per view, got {m.shape}")
         rgb[m] = (1 - _MASK_ALPHA) * rgb[m] + _MASK_ALPHA * np.array(MASK_TINT, np.float32)
@@ -184,6 +188,7 @@ def _title_bar(width: int, title: str, legend: list[tuple[str, tuple[int, int, i
 def render_overlay_grid(views: Any, rig: Any, estimate: Any, parents: Sequence[int], *,
                         truth: Any = None, truth_parents: Sequence[int] | None = None,
                         masks: Any = None, capsules: tuple[Tensor, Tensor] | None = None,
+                        detections: Any = None,
                         title: str = "", labels: Sequence[str] | None = None,
                         columns: int | None = None, scale: float = 1.0,
                         min_width: int = 0) -> np.ndarray:
@@ -192,7 +197,8 @@ def render_overlay_grid(views: Any, rig: Any, estimate: Any, parents: Sequence[i
     Args:
         views: ``C`` images, ``(C, H, W, 3)`` colour (uint8, or float 0–1) or ``(C, H, W)``
             grey/silhouettes (bool, uint8 or float), or a list of such per-view arrays; ``None``
-            draws on black panels of the cameras' image size.
+            draws on black panels of the cameras' image size. A view (or mask) of the largest
+            camera's size is cropped to its own camera's (a sequence's padded layout).
         rig: :class:`~torchmocap.cameras.CameraRig` with ``C`` cameras.
         estimate: joint positions ``(J, 3)`` (metres, world) or a one-pose ``Kinematics``.
         parents: parent index per joint (``-1`` for the root), e.g. ``skeleton.parents``.
@@ -201,6 +207,8 @@ def render_overlay_grid(views: Any, rig: Any, estimate: Any, parents: Sequence[i
         masks: optional ``(C, H, W)`` foreground masks, tinted blue.
         capsules: optional ``(endpoints (B, 2, 3), radii (B,))`` of the estimate's capsule body;
             their image outlines are drawn.
+        detections: optional ``(C, K, 3)`` 2D detections (u, v, confidence) in the cameras'
+            pixels, drawn as :data:`DETECTION_COLOR` rings where the confidence is positive.
         title: text at the left of the title bar (e.g. :func:`frame_title`).
         labels: per-view labels (default ``cam 1 … cam C``).
         columns: grid columns (default ``ceil(sqrt(C))``).
@@ -225,6 +233,7 @@ def render_overlay_grid(views: Any, rig: Any, estimate: Any, parents: Sequence[i
     if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
         raise ValueError(f"scale: expected a finite number > 0, got {scale!r}")
     sizes = rig.image_size.detach().cpu().long().tolist()  # (C, 2) width, height
+    largest = (max(h for _, h in sizes), max(w for w, _ in sizes))
     if views is None:
         images = [np.zeros((h, w, 3), np.uint8) for w, h in sizes]
     else:
@@ -232,11 +241,17 @@ def render_overlay_grid(views: Any, rig: Any, estimate: Any, parents: Sequence[i
             raise ValueError(f"views: expected {C} views (one per camera), got {len(views)}")
         images = [_as_rgb(v, "views") for v in views]
         for c, (img, (w, h)) in enumerate(zip(images, sizes)):
+            if img.shape[:2] == largest:  # a sequence's layout: a smaller view in the corner
+                images[c] = img = img[:h, :w]
             if img.shape[:2] != (h, w):
                 raise ValueError(f"views: view {c} is {img.shape[1]}x{img.shape[0]}, camera {c} "
                                  f"is {w}x{h}")
-    if masks is not None and len(masks) != C:
-        raise ValueError(f"masks: expected {C} masks (one per camera), got {len(masks)}")
+    if masks is not None:
+        if len(masks) != C:
+            raise ValueError(f"masks: expected {C} masks (one per camera), got {len(masks)}")
+        largest = (max(h for _, h in sizes), max(w for w, _ in sizes))
+        masks = [m[:h, :w] if tuple(m.shape[:2]) == largest else m
+                 for m, (w, h) in zip(masks, sizes)]
     if labels is not None and len(labels) != C:
         raise ValueError(f"labels: expected {C} labels, got {len(labels)}")
     est = _points("estimate", estimate)
@@ -259,9 +274,13 @@ def render_overlay_grid(views: Any, rig: Any, estimate: Any, parents: Sequence[i
         ep, radii = capsules
         outlines = [capsule_outlines(rig, c, ep, radii) for c in range(C)]
 
-    legend = [("estimate", ESTIMATE_COLOR)]
-    if tru is not None:
-        legend.append(("ground truth", TRUTH_COLOR))
+    det = None
+    if detections is not None:
+        det = _numpy(detections).astype(float)
+        if det.ndim != 3 or det.shape[0] != C or det.shape[-1] != 3:
+            raise ValueError(f"detections: expected shape ({C}, K, 3) (u, v, confidence per "
+                             f"camera), got {det.shape}")
+    legend = _legend(tru is not None, det is not None)
     rows, cols = grid_shape(C, columns)
     cell = (max(round(w * scale) for w, _ in sizes), max(round(h * scale) for _, h in sizes))
     # a grid narrower than its title and legend is widened (black on the right)
@@ -280,10 +299,20 @@ def render_overlay_grid(views: Any, rig: Any, estimate: Any, parents: Sequence[i
                            _numpy(tru_depth[c]) > 0, tparents, TRUTH_COLOR, width)
         _draw_skeleton(draw, _to_panel(_numpy(est_pix[c]).astype(float), scale),
                        _numpy(est_depth[c]) > 0, list(parents), ESTIMATE_COLOR, width)
+        if det is not None:
+            seen = (det[c, :, 2] > 0) & np.isfinite(det[c, :, :2]).all(-1)
+            r = _JOINT_RADIUS + 1
+            for u, v in _to_panel(det[c, seen, :2], scale):
+                draw.ellipse([u - r, v - r, u + r, v + r], outline=DETECTION_COLOR, width=1)
         _draw_text(draw, (3, 2), labels[c] if labels is not None else f"cam {c + 1}")
         grid.paste(panel, panel_origin(c, cell, cols))
     grid.paste(_title_bar(grid.width, title, legend), (0, 0))
     return np.asarray(grid)
+
+
+def _legend(truth: bool, detections: bool) -> list[tuple[str, tuple[int, int, int]]]:
+    return ([("estimate", ESTIMATE_COLOR)] + ([("ground truth", TRUTH_COLOR)] if truth else [])
+            + ([("detections", DETECTION_COLOR)] if detections else []))
 
 
 def write_overlay_grid(path: str | Path, grid: np.ndarray) -> Path:
@@ -308,18 +337,19 @@ def _format(path: Path) -> str:
 
 def track_overlay_frames(sequence: Any, skeleton: Any, theta: Tensor, frames: Sequence[int],
                          rig: Any = None, body: Any = None, scale: float = 1.0,
-                         columns: int | None = None) -> Iterator[tuple[int, np.ndarray]]:
+                         columns: int | None = None, labels: Sequence[str] | None = None
+                         ) -> Iterator[tuple[int, np.ndarray]]:
     """Overlay grids of a track: ``(t, grid)`` for each frame index in ``frames``.
 
     Args:
         sequence: a :class:`~torchmocap.data.Sequence` (its images, or else its silhouettes, are
             the panels; its silhouettes tint the images; its ground truth, when present, is
-            drawn in :data:`TRUTH_COLOR`).
+            drawn in :data:`TRUTH_COLOR`, its 2D detections in :data:`DETECTION_COLOR`).
         skeleton: the tracking :class:`~torchmocap.skeleton.Skeleton`.
         theta: the track ``(T, D)``.
         rig: the cameras (default ``sequence.rig``).
         body: optional :class:`~torchmocap.body.CapsuleBody` whose outlines are drawn.
-        scale, columns: see :func:`render_overlay_grid`.
+        scale, columns, labels: see :func:`render_overlay_grid`.
 
     Every grid has the same size (the widest title of ``frames`` sets the width).
     """
@@ -336,8 +366,7 @@ def track_overlay_frames(sequence: Any, skeleton: Any, theta: Tensor, frames: Se
     if gt is not None and gt.positions.shape[-2] != len(skeleton.parents):
         truth_parents = gt.build_skeleton().parents
     # one width for every grid of the track (the titles' widths differ)
-    legend = [("estimate", ESTIMATE_COLOR)] + ([("ground truth", TRUTH_COLOR)] if gt is not None
-                                               else [])
+    legend = _legend(gt is not None, getattr(sequence, "joints2d", None) is not None)
     min_width = max((_title_width(frame_title(t, sequence.fps), legend) for t in frames),
                     default=0)
     for t in frames:
@@ -349,5 +378,6 @@ def track_overlay_frames(sequence: Any, skeleton: Any, theta: Tensor, frames: Se
         masks = f.silhouettes if f.images is not None else None
         yield int(t), render_overlay_grid(
             views, rig, kin, skeleton.parents, truth=f.positions, truth_parents=truth_parents,
-            masks=masks, capsules=caps, title=frame_title(t, sequence.fps), columns=columns,
-            scale=scale, min_width=min_width)
+            masks=masks, capsules=caps, detections=getattr(f, "joints2d", None),
+            title=frame_title(t, sequence.fps), labels=labels, columns=columns, scale=scale,
+            min_width=min_width)

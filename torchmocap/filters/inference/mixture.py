@@ -93,7 +93,7 @@ def gauss_newton_function(energy):
             return lik.gauss_newton(Poses(theta, sk), obs, hessian)
         return single
     if isinstance(lik, WeightedSum):
-        active = lik.active_terms()
+        active = lik.present_terms(obs)
         if not active or not all(hasattr(lik.terms[k], "gauss_newton") for k in active):
             return None
 

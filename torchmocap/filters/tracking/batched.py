@@ -48,12 +48,7 @@ from typing import Any
 import torch
 
 from torchmocap.filters.tracking.state import Track
-from torchmocap.filters.tracking.tracker import (
-    Tracker,
-    check_seed,
-    check_working_memory,
-    initial_pose,
-)
+from torchmocap.filters.tracking.tracker import Tracker, check_seed, check_working_memory
 
 __all__ = ["BatchGroup", "Lockstep", "track_groups", "track_seeds"]
 
@@ -323,7 +318,7 @@ def track_groups(groups: Sequence[BatchGroup], progress: bool = True,
                                  particles=st.particles, log_weights=st.log_weights,
                                  carry=st.carry)
             continue
-        theta0 = g.theta0 if g.theta0 is not None else initial_pose(seq)
+        theta0 = g.theta0 if g.theta0 is not None else tr.first_pose(seq)
         states[b] = first_state[id(tr)] = tr.init(theta0, tr.observe(seq.frame(0),
                                                                       _tracking(seq)), seed=seed)
     lengths = [g.sequence.num_frames for g in groups]

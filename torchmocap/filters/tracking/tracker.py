@@ -260,7 +260,15 @@ class Tracker(nn.Module):
 
     def check_sequence(self, sequence) -> None:
         """Raise :class:`MissingObservationError` naming the first modality the components
-        need and the sequence lacks."""
+        need and the sequence lacks, and a ``ValueError`` for a sequence that still holds the
+        camera it holds out (:func:`~torchmocap.data.split_heldout`)."""
+        from torchmocap.data.heldout import heldout_camera
+
+        held = heldout_camera(sequence)
+        if held is not None:
+            raise ValueError(f"tracker {self.name!r}: the sequence still holds its held-out "
+                             f"camera {held!r}; track split_heldout(sequence)[0] and score the "
+                             "track in the held-out view")
         have = sequence.modalities
         for m in self.requires:
             if m not in have:
@@ -451,7 +459,8 @@ class Tracker(nn.Module):
 
         Args:
             sequence: observations. The first pose is ``theta0``, else the ground truth of
-                frame 0, else ``sequence.meta["initial_poses"]`` (candidates refined on frame 0).
+                frame 0, else ``sequence.meta["initial_poses"]`` (candidates refined on frame 0;
+                a single one is the first pose of a tracker that does not refine it).
             progress: show a tqdm progress bar.
             checkpoint: file to save the state to every ``checkpoint_every`` frames; when it
                 exists the run resumes from it (same seed: same track as an uninterrupted run).
@@ -471,7 +480,7 @@ class Tracker(nn.Module):
         if sequence.imu is not None:
             tracking = sequence.imu.tracking.nonzero()[:, 0]
         if theta0 is None:
-            theta0 = initial_pose(sequence)
+            theta0 = self.first_pose(sequence)
         T = sequence.num_frames
         state = None
         if checkpoint is not None and os.path.exists(checkpoint):
@@ -496,6 +505,21 @@ class Tracker(nn.Module):
         secs = [i.seconds for i in state.infos[1:] if i.seconds is not None]
         return self.finish(Track(theta=torch.stack(state.estimates), infos=state.infos,
                                  seconds_per_frame=float(sum(secs) / max(len(secs), 1))))
+
+    def first_pose(self, sequence) -> torch.Tensor:
+        """The start of a track of ``sequence`` (:func:`initial_pose`): ``(D,)``, or the
+        candidates ``(K, D)`` for a tracker that refines the first frame (a single candidate
+        is the pose itself)."""
+        theta0 = initial_pose(sequence)
+        if theta0.dim() == 2 and not self.refine_first_frame:
+            if theta0.shape[0] != 1:
+                raise ValueError(
+                    f"tracker {self.name!r}: the sequence offers {theta0.shape[0]} candidate "
+                    "first poses (meta['initial_poses']) and the tracker does not refine the "
+                    "first frame to choose one (refine_first_frame: true, e.g. "
+                    "tracker=real_frame)")
+            theta0 = theta0[0]
+        return theta0
 
     def finish(self, track: Track) -> Track:
         """The track as returned: smoothed by the ``smoother`` if there is one."""

@@ -1,0 +1,113 @@
+"""torchmocap-track on a real recording (the trimmed pose2sim_balancing): a run with a held-out
+camera writes the scores without ground truth (held-out view, tracked views, consistency), the
+overlays of every view, the video, BVH and GLB, and prints them; bad settings fail naming the
+setting."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hydra import compose, initialize_config_module
+from hydra.core.global_hydra import GlobalHydra
+
+from torchmocap.cli.outputs import print_summary
+from torchmocap.cli.track import run
+
+EXE = str(Path(sys.executable).parent / "torchmocap-track")
+pytestmark = pytest.mark.filterwarnings("ignore:.*codec's crop")
+
+
+def _compose(overrides):
+    GlobalHydra.instance().clear()
+    with initialize_config_module(config_module="torchmocap.conf", version_base="1.3"):
+        return compose(config_name="track", overrides=overrides)
+
+
+def _recording(shared_data, tmp_path, *extra):
+    root = shared_data / "multiview" / "pose2sim_balancing"
+    return ["data=recording", f"data.path={root}", "data.stop=4", "data.scale=0.25",
+            f"data.mask_cache={tmp_path / 'masks'}", "progress=false", *extra]
+
+
+@pytest.mark.slow
+def test_heldout_run_writes_and_prints_the_scores(shared_data, tmp_path, capsys):
+    out = tmp_path / "run"
+    out.mkdir()
+    cfg = _compose(_recording(shared_data, tmp_path, "tracker=real_keypoints",
+                              "tracker.num_particles=30", "tracker.inference.layers=4",
+                              "evaluation.heldout_camera=cam01", "overlays=1",
+                              "video.enabled=true", "video.format=gif"))
+    m = run(cfg, out)
+    saved = json.loads((out / "metrics.json").read_text())
+    assert saved == json.loads(json.dumps(m)) and saved["frames"] == 4
+    h = saved["heldout"]
+    assert h["camera"] == "cam01" and h["image_scale"] == 0.25 and h["min_confidence"] == 0.3
+    for key in ("median_px", "mean_px", "pck_05", "pck_10", "num_compared", "silhouette_iou"):
+        assert key in h and key in h["hold_first_pose"] or key == "num_compared"
+    assert h["keypoint_mapping"]["RKnee"]["joint"] == "r_knee"
+    assert h["num_compared"] > 50 and 0.0 < h["silhouette_iou"] < 1.0
+    assert list(saved["tracked_views"]) == ["cam02", "cam03", "cam04"]
+    c = saved["consistency"]
+    assert c["points"] == "keypoints" and set(c["bone_length_cv_percent"]["per_bone"]) >= \
+        {"LHip-LKnee", "RElbow-RWrist"} and c["jitter_m_s2"]["mean"] > 0
+    assert saved["skeleton_scale"] > 0.8 and saved["source"] == "recording"
+    z = np.load(out / "track.npz")
+    assert z["heldout_errors_px"].shape == (4, 25) and z["heldout_silhouette_iou"].shape == (4,)
+    from torchmocap.io import load_motion
+
+    assert load_motion(out / "tracked.bvh").num_frames == 4
+    assert (out / "track.glb").stat().st_size > 1000 and (out / "overlays.gif").is_file()
+    from PIL import Image
+
+    (grid,) = out.glob("overlay_*.png")
+    with Image.open(grid) as im:  # every view: 2 x 2 panels of 272 x 480
+        assert im.size == (544, 20 + 960)
+    print_summary(m)
+    printed = capsys.readouterr().out
+    assert "held-out cam01" in printed and "holding the first pose" in printed
+    assert "bone-length CV (keypoints)" in printed and "jitter (keypoints)" in printed
+
+
+@pytest.mark.parametrize("extra,match", [
+    (["evaluation.heldout_camera=cam09"], r"evaluation\.heldout_camera: unknown camera 'cam09'"),
+    (["evaluation.heldout_camera=cam02", "data.cameras=[cam01,cam03]"],
+     r"evaluation\.heldout_camera: camera 'cam02' is not among the loaded cameras"),
+    (["data.masks=compute", "+data.mask_settings.scale=0.5"],
+     r"data\.mask_settings\.scale: the masks are computed at the images' working scale"),
+])
+def test_bad_recording_settings_name_the_setting(shared_data, tmp_path, extra, match):
+    cfg = _compose(_recording(shared_data, tmp_path, "tracker=real_keypoints", *extra))
+    with pytest.raises(ValueError, match=match):
+        run(cfg, tmp_path)
+
+
+def test_heldout_camera_of_synthetic_data_is_refused(tmp_path):
+    cfg = _compose(["data.clip.frames=3", "evaluation.heldout_camera=0", "progress=false"])
+    with pytest.raises(ValueError, match=r"evaluation\.heldout_camera: the data source "
+                                         r"torchmocap\.data\.loaders\.synthesized_sequence "
+                                         r"cannot hold a camera out"):
+        run(cfg, tmp_path)
+
+
+def test_console_masks_compute_without_keypoints_or_plates(shared_data, tmp_path):
+    """The command line's error contract: one line naming the setting, exit status 2."""
+    rec = tmp_path / "rec"
+    shutil.copytree(shared_data / "multiview" / "pose2sim_balancing", rec,
+                    ignore=shutil.ignore_patterns("background", "pose2sim_output"))
+    r = subprocess.run([EXE, "data=recording", f"data.path={rec}", "data.masks=compute",
+                        "data.keypoints.source=none", "data.stop=2", "data.scale=0.25",
+                        "tracker=real_keypoints", f"hydra.run.dir={tmp_path / 'run'}"],
+                       capture_output=True, text=True, timeout=600, cwd=tmp_path,
+                       env=dict(os.environ, OMP_NUM_THREADS="1"))
+    assert r.returncode == 2, r.stderr[-2000:]
+    assert "torchmocap-track: error: data.masks: compute needs the subject's keypoints or " \
+           "background plates" in r.stderr
+    record = json.loads((tmp_path / "run" / "failure.json").read_text())
+    assert record["error"].startswith("data.masks: compute needs")
