@@ -164,6 +164,18 @@ class TestProject:
         with pytest.raises(ValueError, match="points"):
             rig.project_planar(pts[None])
 
+    @pytest.mark.parametrize("dist", [False, True])
+    def test_planar_without_visibility_same_pixels(self, dist):
+        rig = _random_rig(dist=dist).float()
+        pts = _points(400).float()
+        u, v, z, ok = rig.project_planar(pts)
+        u2, v2, z2, none = rig.project_planar(pts, visibility=False)
+        assert none is None and ok is not None
+        assert torch.equal(u, u2) and torch.equal(v, v2) and torch.equal(z, z2)
+        # the planar lens model against the stacked (kornia) one, in float32
+        pix = rig.project(pts)[0]
+        torch.testing.assert_close(torch.stack([u, v], -1), pix, atol=2e-3, rtol=0)
+
     def test_module(self):
         rig = _random_rig()
         pts = _points()

@@ -241,7 +241,7 @@ def _stadiums(endpoints: torch.Tensor, radii: torch.Tensor, rig) -> _Stadiums:
     P, B = endpoints.shape[:2]
     dt = endpoints.dtype
     pts = endpoints.permute(2, 1, 0, 3).reshape(2 * B * P, 3)  # (end, B, P) order
-    u, v, depth, _ = rig.project_planar(pts)  # (C, 2 B P)
+    u, v, depth, _ = rig.project_planar(pts, visibility=False)  # (C, 2 B P)
     C = u.shape[0]
     pix = torch.stack([u, v], 1).view(C, 2, 2, B, P).transpose(1, 2)  # (C, end, xy, B, P)
     z = depth.view(C, 2, B, P)
