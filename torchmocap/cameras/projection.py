@@ -264,7 +264,7 @@ def _visible(u: Tensor, v: Tensor, depth: Tensor, image_size: Tensor | None, C: 
 
 def project_points_planar(points: Tensor, K: Tensor, R: Tensor, t: Tensor,
                           dist: Tensor | None = None, image_size: Tensor | None = None,
-                          visibility: bool = True
+                          visibility: bool = True, distorted: bool | None = None
                           ) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
     """:func:`project_points` of a flat list ``points (M, 3)``, returned as planes.
 
@@ -274,13 +274,17 @@ def project_points_planar(points: Tensor, K: Tensor, R: Tensor, t: Tensor,
     ``(R | t)``, the division and the lens model on the planes (:func:`_distort_planar`, the
     pixels of :func:`project_points` to the bit when the skew is 0). ``visibility=False`` skips
     the visibility test (``visible`` is then None) for callers that handle points behind the
-    camera or outside the image themselves.
+    camera or outside the image themselves. ``distorted``: whether ``dist`` has a non-zero
+    coefficient, when the caller knows (None: read from ``dist``, a host read that would split
+    a compiled graph).
     """
     if points.dim() != 2 or points.shape[-1] != 3:
         raise ValueError(f"points: expected shape (M, 3), got {tuple(points.shape)}")
     C = _check_rig_params(K, dist, R, t)
     Kp = _pinhole(K)
-    if dist is not None and bool((dist != 0).any()):
+    if distorted is None:
+        distorted = dist is not None and bool((dist != 0).any())
+    if distorted:
         # world_to_camera's product and sum, then the perspective division, as planes
         pc = (R.reshape(3 * C, 3) @ points.T + t.reshape(3 * C, 1)).view(C, 3, -1)
         depth = pc[:, 2]

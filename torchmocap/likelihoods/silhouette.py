@@ -40,7 +40,8 @@ from typing import NamedTuple
 import torch
 import torch.nn.functional as F
 
-from torchmocap.likelihoods.base import Likelihood
+from torchmocap.compilation import CompiledFunction
+from torchmocap.likelihoods.base import Likelihood, blockwise, check_block
 
 __all__ = [
     "SilhouetteObservation",
@@ -236,12 +237,15 @@ class _Stadiums(NamedTuple):
     r1: torch.Tensor
 
 
-def _stadiums(endpoints: torch.Tensor, radii: torch.Tensor, rig) -> _Stadiums:
-    """:class:`_Stadiums` of capsule axes ``endpoints (P, B, 2, 3)`` with radii ``(B,)``."""
+def _stadiums(endpoints: torch.Tensor, radii: torch.Tensor, rig,
+              distorted: bool | None = None) -> _Stadiums:
+    """:class:`_Stadiums` of capsule axes ``endpoints (P, B, 2, 3)`` with radii ``(B,)``
+    (``distorted``: the rig's :attr:`~torchmocap.cameras.CameraRig.has_distortion`, when
+    known)."""
     P, B = endpoints.shape[:2]
     dt = endpoints.dtype
     pts = endpoints.permute(2, 1, 0, 3).reshape(2 * B * P, 3)  # (end, B, P) order
-    u, v, depth, _ = rig.project_planar(pts, visibility=False)  # (C, 2 B P)
+    u, v, depth, _ = rig.project_planar(pts, visibility=False, distorted=distorted)  # (C, 2BP)
     C = u.shape[0]
     pix = torch.stack([u, v], 1).view(C, 2, 2, B, P).transpose(1, 2)  # (C, end, xy, B, P)
     z = depth.view(C, 2, B, P)
@@ -353,7 +357,8 @@ def _coverage_margin(q: torch.Tensor, st: _Stadiums, smooth: bool) -> torch.Tens
 def silhouette_energy(endpoints: torch.Tensor, radii: torch.Tensor, rig,
                       obs: SilhouetteObservation, smooth: bool = False, axis_samples: int = 5,
                       across_samples: int = 3, tau: float | torch.Tensor = 1.5,
-                      distance: float | torch.Tensor | None = None) -> torch.Tensor:
+                      distance: float | torch.Tensor | None = None,
+                      distorted: bool | None = None) -> torch.Tensor:
     """Silhouette disagreement ``V_silh (P,)`` in [0, 1] of capsules ``endpoints (P, B, 2, 3)``.
 
     0 means the projected capsules and the foreground agree exactly at the sampled points; see
@@ -361,9 +366,11 @@ def silhouette_energy(endpoints: torch.Tensor, radii: torch.Tensor, rig,
     ``distance``, the robust scale in pixels, which needs ``obs`` prepared with
     ``distance=True``). ``tau`` and ``distance`` are numbers or per-view ``(C,)`` tensors.
     Without any usable view (all dropped or empty) every particle gets 1: the frame carries no
-    silhouette evidence, and it must not look like a perfect match.
+    silhouette evidence, and it must not look like a perfect match. ``distorted``: the rig's
+    ``has_distortion`` when the caller has read it (no host read of tensor values is left
+    then, so the function compiles into one graph).
     """
-    st = _stadiums(endpoints, radii, rig)
+    st = _stadiums(endpoints, radii, rig, distorted)
     dt = st.ax.dtype
     px, py, area = _stadium_points(st, axis_samples, across_samples)
     if distance is not None:
@@ -397,10 +404,10 @@ def silhouette_energy(endpoints: torch.Tensor, radii: torch.Tensor, rig,
 def _over_views(m2i: torch.Tensor, i2m: torch.Tensor, view_valid: torch.Tensor) -> torch.Tensor:
     """``V_silh (P,)``: the mean over usable views of ``(m2i + i2m) / 2`` (each ``(C, P)``); 1
     for every particle without any usable view (uninformative, never a perfect 0)."""
-    if not bool(view_valid.any()):
-        return torch.ones(m2i.shape[1], dtype=m2i.dtype, device=m2i.device)
     vv = view_valid.to(m2i.dtype)[:, None]
-    return (0.5 * (m2i + i2m) * vv).sum(0) / vv.sum()
+    n = vv.sum()
+    mean = (0.5 * (m2i + i2m) * vv).sum(0) / n.clamp_min(1)
+    return torch.where(n > 0, mean, torch.ones_like(mean))
 
 
 class SilhouetteLikelihood(Likelihood):
@@ -422,6 +429,13 @@ class SilhouetteLikelihood(Likelihood):
             given for: each view scales them by its own width / ``reference_width``, so the term
             tolerates the same fraction of the image at any resolution (the presets give them
             for 320-pixel-wide views). ``None``: raw pixels in every view.
+        compile: run the energy through ``torch.compile`` (:mod:`torchmocap.compilation`:
+            the first call compiles, then ~3x faster on a CPU; not bit-identical to the eager
+            energy, falls back to it when compiling fails).
+        block: particles per block (:func:`~torchmocap.likelihoods.base.blockwise`): larger
+            batches are evaluated block by block, their temporaries cache-sized (3x faster at
+            4000 particles); a batch of at most ``block`` particles is one call, as before.
+            None: always one call.
 
     ``requires = ("silhouettes",)``; ``prepare(frame)`` samples the foreground once per frame
     (views flagged in ``frame.view_dropped`` and empty masks are excluded).
@@ -432,8 +446,13 @@ class SilhouetteLikelihood(Likelihood):
     def __init__(self, body, rig, smooth: bool = False, fg_samples: int = 64,
                  blur: float | None = None, axis_samples: int = 5, across_samples: int = 3,
                  tau: float = 1.5, distance: float | None = None,
-                 reference_width: float | None = None):
+                 reference_width: float | None = None, compile: bool = False,
+                 block: int | None = 512):
         super().__init__()
+        if not isinstance(compile, bool):
+            raise ValueError(f"compile: expected true or false, got {compile!r}")
+        self._energy = CompiledFunction(silhouette_energy, "terms.silhouette.compile", compile)
+        self.block = check_block(block)
         if reference_width is not None and (
                 isinstance(reference_width, bool) or not isinstance(reference_width, (int, float))
                 or not math.isfinite(reference_width) or reference_width <= 0):
@@ -492,13 +511,15 @@ class SilhouetteLikelihood(Likelihood):
 
     def energy(self, poses, observation: SilhouetteObservation) -> torch.Tensor:
         k = self.view_scale()
-        return silhouette_energy(poses.endpoints(self.body), self.body.radii, self.rig,
-                                 observation, self.smooth, self.axis_samples,
-                                 self.across_samples, self.tau * k,
-                                 None if self.distance is None else self.distance * k)
+        return blockwise(self._energy, poses.endpoints(self.body), self.block, self.body.radii,
+                         self.rig, observation, self.smooth, self.axis_samples,
+                         self.across_samples, self.tau * k,
+                         None if self.distance is None else self.distance * k,
+                         self.rig.has_distortion)
 
     def extra_repr(self) -> str:
         ref = "" if self.reference_width is None else f", reference_width={self.reference_width:g}"
+        ref += ", compile=True" if self._energy.enabled else ""
         if self.distance is not None:
             return f"distance={self.distance}, fg_samples={self.fg_samples}{ref}"
         return f"smooth={self.smooth}, fg_samples={self.fg_samples}, blur={self.blur}{ref}"
