@@ -9,10 +9,12 @@ Run:  python experiments/benchmarks/tracker.py [--threads 2] [--frames 12] [--ba
    200 particles x 15 layers, 4 views at 320x240, silhouettes + appearance) on the bundled CMU
    walk in the ``studio`` scenario: frames per second (target >= 5 on 2 CPU cores), also with
    the appearance term switched off (``tracker.likelihood.weights.appearance=0``).
-3. The real bodytrack frame at full resolution (4 views, 640x480): one 200 x 15 annealing pass on
-   its silhouettes, beside PARSEC bodytrack's C++ annealed particle filter, which needs 0.086 s
-   for 200 particles x 15 layers on one core of this machine class (a number measured outside
-   this script: PARSEC is not built here).
+3. The real bodytrack frame at full resolution (4 views, 640x480): our annealing on its
+   silhouettes beside PARSEC bodytrack's C++ annealed particle filter, built from its sources
+   (``../shared/peers/parsec_bodytrack`` or ``--peer``) into a temporary folder and run on the
+   same frame with 1 and 2 threads, 200 x 15 and 4000 x 5, interleaved with ours (``--repeats``
+   rounds, medians; see :func:`real_frame`). Without a C++ compiler or without ``../shared``
+   these rows are skipped with the reason.
 
 ``--baseline DIR`` instead times tracker ``p`` of another checkout (e.g. a ``git worktree`` of an
 older commit) beside this one: each in a worker process driven by this script, one frame at a time
@@ -23,6 +25,7 @@ a before/after measured in one run, robust to the host's drift.
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import platform
 import statistics
@@ -30,11 +33,12 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import torch
 from timing import median_ms
 
-SHARED = Path(__file__).resolve().parents[3] / "shared" / "data"
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _median(fn, repeats):
@@ -42,7 +46,7 @@ def _median(fn, repeats):
     return median_ms(fn, repeats, warmup=1) / 1e3
 
 
-def measure(frames: int, bodytrack: bool = True) -> list[str]:
+def measure(frames: int) -> list[str]:
     """The benchmark rows (markdown) of this checkout."""
     from torchmocap.assembly import Runtime, build_tracker, tracker_config
     from torchmocap.data import synthesize
@@ -86,35 +90,126 @@ def measure(frames: int, bodytrack: bool = True) -> list[str]:
         rows.append(f"| tracker p, 200 x 15, {C} views 320x240, {label} | {dt:.3f} s/frame | "
                     f"{1 / dt:.2f} frames/s (target >= 5) |")
 
-    root = SHARED / "multiview" / "bodytrack_sequenceB_1"
-    if bodytrack and root.is_dir():
-        from torchmocap.body import CapsuleBody
-        from torchmocap.data.bodytrack import load_bodytrack
-        from torchmocap.filters.optim.anneal import anneal, default_diffusion
-        from torchmocap.likelihoods.silhouette import prepare_silhouettes, silhouette_energy
-        from torchmocap.skeleton import human31
-
-        brig, _, masks = load_bodytrack(root)
-        brig = brig.float()
-        bsk = human31()
-        bbody = CapsuleBody(bsk)
-        bobs = prepare_silhouettes(masks, 64)
-        x0 = bsk.zero_pose() + 0.05 * torch.randn(200, bsk.num_dofs, generator=g)
-        x0[:, 0] += 0.15
-        x0[:, 1] += 0.9
-
-        def energy(th):
-            return silhouette_energy(bbody.endpoints(bsk(th, check_finite=False)), bbody.radii,
-                                     brig, bobs)
-
-        def one_pass():
-            anneal(energy, x0, layers=15, diffusion=default_diffusion(15),
-                   lower=bsk.lower, upper=bsk.upper, generator=torch.Generator().manual_seed(1))
-
-        t_a = _median(one_pass, 5)
-        rows.append(f"| bodytrack frame 640x480 x 4 views, one 200 x 15 anneal | {t_a:.3f} s | "
-                    f"PARSEC C++ 0.086 s/1 core: ratio {0.086 / t_a:.2f}x |")
     return rows
+
+
+def _real_frame_anneal(root: Path, particles: int, layers: int, compiled: bool):
+    """``(run, load_and_run)`` of our real-frame annealing: ``run()`` anneals ``particles x
+    layers`` on the prepared frame (the timed region of the "annealing" rows: the energy — forward
+    kinematics, capsules, silhouette term — and the annealing loop: selection, diffusion,
+    bounds, β, weights, estimate); ``load_and_run()`` also reads the frame (calibration, grey
+    images and masks) and prepares its silhouettes first. Starts: the zero pose at the subject's
+    place plus 5 cm / 0.05 rad of Gaussian noise per DoF (seed 0); annealing seed 1."""
+    from torchmocap.body import CapsuleBody
+    from torchmocap.data.bodytrack import load_bodytrack
+    from torchmocap.filters.optim.anneal import anneal, default_diffusion
+    from torchmocap.likelihoods import FrameEnergy, SilhouetteLikelihood
+    from torchmocap.skeleton import human31
+
+    sk = human31()
+    body = CapsuleBody(sk)
+    x0 = sk.zero_pose() + 0.05 * torch.randn(particles, sk.num_dofs,
+                                             generator=torch.Generator().manual_seed(0))
+    x0[:, 0] += 0.15
+    x0[:, 1] += 0.9
+    lik = {}
+
+    def load():
+        rig, _, masks = load_bodytrack(root)
+        if "term" not in lik:  # the term (and its compiled energy) is built once
+            lik["term"] = SilhouetteLikelihood(body, rig.float(), fg_samples=64,
+                                               compile=compiled)
+        frame = SimpleNamespace(silhouettes=masks, view_dropped=None)
+        return FrameEnergy(lik["term"], lik["term"].prepare(frame), sk)
+
+    energy = load()
+
+    def run(V=None):
+        return anneal(V or energy, x0, layers=layers, diffusion=default_diffusion(layers),
+                      lower=sk.lower, upper=sk.upper,
+                      generator=torch.Generator().manual_seed(1))
+
+    return run, lambda: run(load())
+
+
+def _timed(fn) -> tuple[float, float]:
+    """Wall and CPU (all threads of this process) seconds of ``fn()``."""
+    c0, t0 = time.process_time(), time.perf_counter()
+    fn()
+    return time.perf_counter() - t0, time.process_time() - c0
+
+
+def real_frame(repeats: int, threads: int, peer_dir: Path, frame_dir: Path,
+               compiled: bool = False) -> list[str]:
+    """Our real-frame annealing and PARSEC bodytrack's, interleaved, as markdown lines.
+
+    Per workload (200 x 15, 4000 x 5) and round: PARSEC with 1 thread (serial code) and with 2
+    (OpenMP), each with the workload's layers and with one layer (for its annealing-only
+    estimate, :func:`bodytrack_peer.anneal_only`), then our annealing and our load + prepare +
+    annealing on ``threads`` threads (eager, and with ``compiled`` also the compiled energy);
+    every other round in the reverse order, so both sides see the same load. Medians over the
+    rounds. PARSEC's times are whole processes (start, calibration and image loading, edge
+    maps, the initial weighting, the layers, the pose file); ours are in-process (the
+    interpreter's start and imports excluded), see :func:`_real_frame_anneal`."""
+    import bodytrack_peer as bp
+
+    med = statistics.median
+    try:
+        peer = bp.Peer(peer_dir, frame_dir)
+    except bp.PeerUnavailable as e:
+        return [f"PARSEC bodytrack rows skipped: {e}"]
+    variants = ["eager"] + (["compiled"] if compiled else [])
+    lines = []
+    with peer:
+        lines.append(f"PARSEC bodytrack built from {peer_dir} in {peer.build_seconds:.1f} s; "
+                     f"load average at the start {os.getloadavg()[0]:.2f}; {repeats} rounds")
+        for particles, layers in ((200, 15), (4000, 5)):
+            steps = [(f"p{n}_{k}", functools.partial(peer.run, particles, k, n))
+                     for n in (1, 2) for k in (layers, 1)]
+            for v in variants:
+                run, load_and_run = _real_frame_anneal(frame_dir, particles, layers,
+                                                       v == "compiled")
+                t0 = time.perf_counter()
+                run()  # warm-up (and compilation)
+                if v == "compiled":
+                    lines.append(f"(compiling and a first {particles} x {layers} pass: "
+                                 f"{time.perf_counter() - t0:.1f} s)")
+                steps += [(v, functools.partial(_timed, run)),
+                          (f"{v}_load", functools.partial(_timed, load_and_run))]
+            got: dict[str, list[tuple[float, float]]] = {name: [] for name, _ in steps}
+            for i in range(repeats):
+                for name, fn in (steps if i % 2 == 0 else steps[::-1]):
+                    r = fn()
+                    got[name].append((r.wall, r.cpu) if isinstance(r, bp.PeerRun) else r)
+            wall = {k: med(w for w, _ in v) for k, v in got.items()}
+            cpu = {k: med(c for _, c in v) for k, v in got.items()}
+            est = {n: bp.anneal_only(wall[f"p{n}_{layers}"], wall[f"p{n}_1"], layers)
+                   for n in (1, 2)}
+            est_cpu = {n: bp.anneal_only(cpu[f"p{n}_{layers}"], cpu[f"p{n}_1"], layers)
+                       for n in (1, 2)}
+            lines += ["", f"| {particles} x {layers}, 4 views 640x480 | wall s (median) | "
+                          "CPU s (median) |", "|---|---|---|"]
+            for v in variants:
+                lines += [f"| ours ({v} energy, {threads} threads): annealing | {wall[v]:.3f} | "
+                          f"{cpu[v]:.3f} |",
+                          f"| ours ({v}): load + prepare + annealing | {wall[v + '_load']:.3f} | "
+                          f"{cpu[v + '_load']:.3f} |"]
+            for n in (1, 2):
+                th = f"{n} thread{'s' * (n > 1)}"
+                lines += [f"| PARSEC {th}: whole process | {wall[f'p{n}_{layers}']:.3f} | "
+                          f"{cpu[f'p{n}_{layers}']:.3f} |",
+                          f"| PARSEC {th}: annealing (est.) | {est[n]:.3f} | {est_cpu[n]:.3f} |"]
+            best = min((1, 2), key=lambda n: wall[f"p{n}_{layers}"])
+            whole = wall[f"p{best}_{layers}"]
+            lines.append(f"\nratios PARSEC / ours (> 1: ours faster), wall medians, against "
+                         f"PARSEC's faster configuration ({best} thread{'s' * (best > 1)}):")
+            for v in variants:
+                lines.append(f"- {v}: whole process vs our load + prepare + annealing "
+                             f"{whole / wall[v + '_load']:.2f}x; whole process vs our annealing "
+                             f"{whole / wall[v]:.2f}x; annealing (est.) vs our annealing "
+                             f"{est[best] / wall[v]:.2f}x")
+        lines.append(f"\nload average at the end {os.getloadavg()[0]:.2f}")
+    return lines
 
 
 def _worker(threads: int, frames: int, appearance: bool) -> None:
@@ -231,7 +326,17 @@ def main():
                     help="another checkout to time in the same run (before/after)")
     ap.add_argument("--rounds", type=int, default=60,
                     help="frames timed per checkout with --baseline")
-    ap.add_argument("--no-bodytrack", action="store_true", help="skip the real-frame row")
+    ap.add_argument("--no-bodytrack", action="store_true", help="skip the real-frame rows")
+    ap.add_argument("--only-bodytrack", action="store_true",
+                    help="only the real-frame rows (ours beside PARSEC)")
+    ap.add_argument("--repeats", type=int, default=7,
+                    help="interleaved rounds of the real-frame rows")
+    ap.add_argument("--compile", action="store_true",
+                    help="our real-frame energy compiled (SilhouetteLikelihood(compile=True))")
+    ap.add_argument("--peer", type=Path, default=REPO.parent / "shared" / "peers" /
+                    "parsec_bodytrack", help="PARSEC bodytrack's sources (with build.sh)")
+    ap.add_argument("--frame", type=Path, default=REPO.parent / "shared" / "data" /
+                    "multiview" / "bodytrack_sequenceB_1", help="the bodytrack frame folder")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--no-appearance", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -242,9 +347,13 @@ def main():
     print(f"# torch {torch.__version__}, {torch.get_num_threads()} threads, "
           f"{platform.processor() or platform.machine()}")
     if args.baseline is None:
-        print("| workload | time | throughput |")
-        print("|---|---|---|")
-        print("\n".join(measure(args.frames, not args.no_bodytrack)))
+        if not args.only_bodytrack:
+            print("| workload | time | throughput |")
+            print("|---|---|---|")
+            print("\n".join(measure(args.frames)))
+        if not args.no_bodytrack:
+            print("\n".join(real_frame(args.repeats, args.threads, args.peer.resolve(),
+                                       args.frame.resolve(), args.compile)))
         return
     before_after(args.baseline.resolve(), args.threads, args.frames, args.rounds)
 
