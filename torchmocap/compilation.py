@@ -35,7 +35,7 @@ import torch
 __all__ = ["CompiledFunction"]
 
 #: Inductor options of every compiled core: thread count read at run time
-INDUCTOR_OPTIONS = {"cpp.dynamic_threads": True}
+INDUCTOR_OPTIONS = {"cpp.dynamic_threads": True, "cpp.enable_loop_tail_vec": False}
 
 
 class CompiledFunction:
