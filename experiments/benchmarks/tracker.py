@@ -218,15 +218,89 @@ def real_frame(repeats: int, threads: int, peer_dir: Path, frame_dir: Path,
                           f"{cpu[f'p{n}_{layers}']:.3f} |",
                           f"| PARSEC {th}: annealing (est.) | {est[n]:.3f} | {est_cpu[n]:.3f} |"]
             best = min((1, 2), key=lambda n: wall[f"p{n}_{layers}"])
-            whole = wall[f"p{best}_{layers}"]
-            lines.append(f"\nratios PARSEC / ours (> 1: ours faster), wall medians, against "
-                         f"PARSEC's faster configuration ({best} thread{'s' * (best > 1)}):")
-            for v in variants:
-                lines.append(f"- {v}: whole process vs our load + prepare + annealing "
-                             f"{whole / wall[v + '_load']:.2f}x; whole process vs our annealing "
-                             f"{whole / wall[v]:.2f}x; annealing (est.) vs our annealing "
-                             f"{est[best] / wall[v]:.2f}x")
+            for n, which in ((best, "its faster configuration"),
+                             (threads, "the same number of threads")):
+                if n not in (1, 2):
+                    continue
+                whole = wall[f"p{n}_{layers}"]
+                lines.append(f"\nratios PARSEC / ours (> 1: ours faster), wall medians, PARSEC "
+                             f"with {which} ({n} thread{'s' * (n > 1)}):")
+                for v in variants:
+                    lines.append(f"- {v}: whole process vs our load + prepare + annealing "
+                                 f"{whole / wall[v + '_load']:.2f}x; whole process vs our "
+                                 f"annealing {whole / wall[v]:.2f}x; annealing (est.) vs our "
+                                 f"annealing {est[n] / wall[v]:.2f}x")
         lines.append(f"\nload average at the end {os.getloadavg()[0]:.2f}")
+    return lines
+
+
+#: the parts of a frame :func:`profile` reports: (label, file, function) of cProfile entries
+PARTS = [("annealing, all layers", "anneal.py", "anneal"),
+         ("energy (FrameEnergy)", "base.py", "__call__"),
+         ("- forward kinematics (Poses.kinematics)", "base.py", "kinematics"),
+         ("- capsule ends incl. kinematics (Poses.endpoints)", "base.py", "endpoints"),
+         ("- silhouette term (after its capsule ends)", "silhouette.py", "energy"),
+         ("- appearance term", "appearance.py", "energy"),
+         ("proposal draws (ManifoldProposal.sample)", "manifold.py", "sample"),
+         ("diffusion (CovarianceDiffusion)", "anneal.py", "__call__"),
+         ("ESS-targeted beta (ess_target_beta)", "schedules.py", "ess_target_beta"),
+         ("selection (resampler)", "resampling.py", "__call__")]
+
+
+def profile(frames: int, compiled: bool, frame_dir: Path) -> list[str]:
+    """cProfile of tracker ``p`` (``frames`` frames after a warm-up) and of the real-frame
+    200 x 15 annealing (5 passes): the cumulative time of each part of :data:`PARTS` and its
+    share of the total (the parts nest: the energy holds its terms; the term that asks for the
+    capsule ends first pays for them, so the terms are given without them)."""
+    import cProfile
+    import pstats
+
+    from torchmocap.assembly import Runtime, build_tracker, tracker_config
+    from torchmocap.data import synthesize
+    from torchmocap.data.subject import fit_subject
+    from torchmocap.filters import Tracker
+    from torchmocap.io import bundled_clip_path, load_motion
+
+    clip = load_motion(bundled_clip_path()).resample(25).slice(0, frames + 1)
+    seq = synthesize(fit_subject(clip), "studio", seed=0)
+    tracking = seq.imu.tracking.nonzero()[:, 0]
+    obs = [Tracker.observe(seq.frame(t), tracking) for t in range(seq.num_frames)]
+    tr = build_tracker(tracker_config("p", COMPILED if compiled else []),
+                       Runtime.from_sequence(seq), seed=0)
+
+    def track():
+        st = tr.init(seq.ground_truth.theta[0].float(), obs[0])
+        for t in range(1, seq.num_frames):
+            st = tr.step(st, obs[t])[0]
+
+    variant = "compiled" if compiled else "eager"
+    jobs = [(f"tracker p ({variant}), {frames} frames", track)]
+    if (frame_dir / "CALIB").is_dir():
+        run, _ = _real_frame_anneal(frame_dir, 200, 15, compiled)
+        jobs.append((f"real frame, 200 x 15 ({variant}), 5 passes",
+                     lambda: [run() for _ in range(5)]))
+    lines = []
+    for label, fn in jobs:
+        fn()  # warm-up (and compilation)
+        prof = cProfile.Profile()
+        t0 = time.perf_counter()
+        prof.runcall(fn)
+        total = time.perf_counter() - t0
+        stats = pstats.Stats(prof).stats
+        cum = {}
+        for (file, _, name), v in stats.items():
+            key = (Path(file).name, name)
+            cum[key] = cum.get(key, 0.0) + v[3]
+        ends = cum.get(("base.py", "endpoints"), 0.0)
+        lines += ["", f"| {label} (profiled {total:.2f} s) | cumulative s | share |",
+                  "|---|---|---|"]
+        for part, file, name in PARTS:
+            if (file, name) not in cum:
+                continue
+            t = cum[(file, name)]
+            if file == "silhouette.py":
+                t -= ends  # the first term asked for the capsule ends
+            lines.append(f"| {part} | {t:.3f} | {100 * t / total:.1f}% |")
     return lines
 
 
@@ -356,6 +430,8 @@ def main():
                     "parsec_bodytrack", help="PARSEC bodytrack's sources (with build.sh)")
     ap.add_argument("--frame", type=Path, default=REPO.parent / "shared" / "data" /
                     "multiview" / "bodytrack_sequenceB_1", help="the bodytrack frame folder")
+    ap.add_argument("--profile", action="store_true",
+                    help="only cProfile tables of tracker p and the real-frame annealing")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--no-appearance", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -365,6 +441,9 @@ def main():
     torch.set_num_threads(args.threads)
     print(f"# torch {torch.__version__}, {torch.get_num_threads()} threads, "
           f"{platform.processor() or platform.machine()}")
+    if args.profile:
+        print("\n".join(profile(args.frames, args.compile, args.frame.resolve())))
+        return
     if args.baseline is None:
         if not args.only_bodytrack:
             print("| workload | time | throughput |")
