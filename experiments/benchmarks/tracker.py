@@ -1,18 +1,24 @@
-"""Tracker throughput: likelihood evaluations per second and frames per second of preset ``p``.
+"""Tracker throughput: likelihood evaluations per second and frames per second of preset ``p``,
+and the real-frame annealing beside PARSEC bodytrack's C++ one.
 
-Run:  python experiments/benchmarks/tracker.py [--threads 2] [--frames 12] [--baseline DIR]
+Run:  python experiments/benchmarks/tracker.py [--threads 2] [--frames 12] [--compile]
+                                               [--repeats 7] [--baseline DIR]
 
 1. Silhouette (+ appearance) likelihood throughput: particle-view evaluations per second for
    200 particles x 4 views at 320x240 (the energy of one annealing layer), through the
    assembled likelihood (:class:`~torchmocap.likelihoods.FrameEnergy`).
 2. Tracker ``p`` as built from ``conf/tracker/p.yaml`` (Pons-Moll: manifold sampling + vMF,
    200 particles x 15 layers, 4 views at 320x240, silhouettes + appearance) on the bundled CMU
-   walk in the ``studio`` scenario: frames per second (target >= 5 on 2 CPU cores), also with
-   the appearance term switched off (``tracker.likelihood.weights.appearance=0``).
-3. The real bodytrack frame at full resolution (4 views, 640x480): one 200 x 15 annealing pass on
-   its silhouettes, beside PARSEC bodytrack's C++ annealed particle filter, which needs 0.086 s
-   for 200 particles x 15 layers on one core of this machine class (a number measured outside
-   this script: PARSEC is not built here).
+   walk in the ``studio`` scenario: frames per second (target >= 10 on 2 CPU cores), also with
+   the appearance term switched off (``tracker.likelihood.weights.appearance=0``). With
+   ``--compile`` every row also for the compiled components (:data:`COMPILED`), the two
+   trackers' frames in alternation.
+3. The real bodytrack frame at full resolution (4 views, 640x480): our annealing on its
+   silhouettes beside PARSEC bodytrack's C++ annealed particle filter, built from its sources
+   (``../shared/peers/parsec_bodytrack`` or ``--peer``) into a temporary folder and run on the
+   same frame with 1 and 2 threads, 200 x 15 and 4000 x 5, interleaved with ours (``--repeats``
+   rounds, medians; see :func:`real_frame`). Without a C++ compiler or without ``../shared``
+   these rows are skipped with the reason.
 
 ``--baseline DIR`` instead times tracker ``p`` of another checkout (e.g. a ``git worktree`` of an
 older commit) beside this one: each in a worker process driven by this script, one frame at a time
@@ -23,6 +29,7 @@ a before/after measured in one run, robust to the host's drift.
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import platform
 import statistics
@@ -30,11 +37,12 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import torch
 from timing import median_ms
 
-SHARED = Path(__file__).resolve().parents[3] / "shared" / "data"
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _median(fn, repeats):
@@ -42,8 +50,14 @@ def _median(fn, repeats):
     return median_ms(fn, repeats, warmup=1) / 1e3
 
 
-def measure(frames: int, bodytrack: bool = True) -> list[str]:
-    """The benchmark rows (markdown) of this checkout."""
+#: the overrides of the compiled variant of tracker p (every compile option of its components)
+COMPILED = ["tracker.likelihood.terms.silhouette.compile=true",
+            "tracker.likelihood.terms.appearance.compile=true", "tracker.proposal.compile=true"]
+
+
+def measure(frames: int, compiled: bool = False) -> list[str]:
+    """The benchmark rows (markdown) of this checkout; ``compiled`` adds the compiled variant
+    (:data:`COMPILED`) of every row, its frames interleaved with the eager ones."""
     from torchmocap.assembly import Runtime, build_tracker, tracker_config
     from torchmocap.data import synthesize
     from torchmocap.data.subject import fit_subject
@@ -60,61 +74,234 @@ def measure(frames: int, bodytrack: bool = True) -> list[str]:
                                                                     generator=g)
     rows = []
     C = rig.num_cameras
-    image = build_tracker(tracker_config("p"), rt).likelihood
-    silh = build_tracker(tracker_config("p", ["tracker.likelihood.weights.appearance=0"]),
-                         rt).likelihood
+    variants = [("", [])] + ([(", compiled", COMPILED)] if compiled else [])
     from torchmocap.filters import Tracker
 
     frame = Tracker.observe(seq.frame(1), tracking)
-    for label, lik in (("silhouette likelihood", silh), ("silhouette + appearance", image)):
-        V = FrameEnergy(lik, lik.prepare(frame), sk)
-        with torch.no_grad():
-            t = _median(lambda V=V: V(theta), 20)
-        rows.append(f"| {label}, 200 particles x {C} views | {1e3 * t:.1f} ms | "
-                    f"{200 * C / t:,.0f} particle-views/s |")
+    for name, ov in variants:
+        image = build_tracker(tracker_config("p", ov), rt).likelihood
+        silh = build_tracker(tracker_config("p", ov + ["tracker.likelihood.weights.appearance=0"]),
+                             rt).likelihood
+        for label, lik in (("silhouette likelihood", silh), ("silhouette + appearance", image)):
+            V = FrameEnergy(lik, lik.prepare(frame), sk)
+            with torch.no_grad():
+                t = _median(lambda V=V: V(theta), 20)
+            rows.append(f"| {label}{name}, 200 particles x {C} views | {1e3 * t:.1f} ms | "
+                        f"{200 * C / t:,.0f} particle-views/s |")
+    obs = [Tracker.observe(seq.frame(t), tracking) for t in range(seq.num_frames)]
     for overrides, label in (([], "silhouette + appearance"),
                              (["tracker.likelihood.weights.appearance=0"], "silhouette only")):
-        tr = build_tracker(tracker_config("p", overrides), Runtime.from_sequence(seq), seed=0)
-        st = tr.init(seq.ground_truth.theta[0].float(), tr.observe(seq.frame(0), tracking))
-        st, _, _ = tr.step(st, tr.observe(seq.frame(1), tracking))  # warm-up
-        t0 = time.perf_counter()
-        n = 0
-        for t in range(2, seq.num_frames):
-            st, _, _ = tr.step(st, tr.observe(seq.frame(t), tracking))
-            n += 1
-        dt = (time.perf_counter() - t0) / max(n, 1)
-        rows.append(f"| tracker p, 200 x 15, {C} views 320x240, {label} | {dt:.3f} s/frame | "
-                    f"{1 / dt:.2f} frames/s (target >= 5) |")
-
-    root = SHARED / "multiview" / "bodytrack_sequenceB_1"
-    if bodytrack and root.is_dir():
-        from torchmocap.body import CapsuleBody
-        from torchmocap.data.bodytrack import load_bodytrack
-        from torchmocap.filters.optim.anneal import anneal, default_diffusion
-        from torchmocap.likelihoods.silhouette import prepare_silhouettes, silhouette_energy
-        from torchmocap.skeleton import human31
-
-        brig, _, masks = load_bodytrack(root)
-        brig = brig.float()
-        bsk = human31()
-        bbody = CapsuleBody(bsk)
-        bobs = prepare_silhouettes(masks, 64)
-        x0 = bsk.zero_pose() + 0.05 * torch.randn(200, bsk.num_dofs, generator=g)
-        x0[:, 0] += 0.15
-        x0[:, 1] += 0.9
-
-        def energy(th):
-            return silhouette_energy(bbody.endpoints(bsk(th, check_finite=False)), bbody.radii,
-                                     brig, bobs)
-
-        def one_pass():
-            anneal(energy, x0, layers=15, diffusion=default_diffusion(15),
-                   lower=bsk.lower, upper=bsk.upper, generator=torch.Generator().manual_seed(1))
-
-        t_a = _median(one_pass, 5)
-        rows.append(f"| bodytrack frame 640x480 x 4 views, one 200 x 15 anneal | {t_a:.3f} s | "
-                    f"PARSEC C++ 0.086 s/1 core: ratio {0.086 / t_a:.2f}x |")
+        runs = []
+        for name, ov in variants:
+            tr = build_tracker(tracker_config("p", overrides + ov), Runtime.from_sequence(seq),
+                               seed=0)
+            st = tr.init(seq.ground_truth.theta[0].float(), obs[0])
+            st, _, _ = tr.step(st, obs[1])  # warm-up (and compilation)
+            runs.append([name, tr, st, []])
+        for t in range(2, seq.num_frames):  # the variants' frames in alternation
+            for r in (runs if t % 2 == 0 else runs[::-1]):
+                t0 = time.perf_counter()
+                r[2], _, _ = r[1].step(r[2], obs[t])
+                r[3].append(time.perf_counter() - t0)
+        for name, _, _, ts in runs:
+            dt = statistics.median(ts)
+            rows.append(f"| tracker p, 200 x 15, {C} views 320x240, {label}{name} | "
+                        f"{dt:.3f} s/frame (median of {len(ts)}) | {1 / dt:.2f} frames/s "
+                        "(target >= 10 with appearance) |")
     return rows
+
+
+def _real_frame_anneal(root: Path, particles: int, layers: int, compiled: bool):
+    """``(run, load_and_run)`` of our real-frame annealing: ``run()`` anneals ``particles x
+    layers`` on the prepared frame (the timed region of the "annealing" rows: the energy — forward
+    kinematics, capsules, silhouette term — and the annealing loop: selection, diffusion,
+    bounds, β, weights, estimate); ``load_and_run()`` also reads the frame (calibration, grey
+    images and masks) and prepares its silhouettes first. Starts: the zero pose at the subject's
+    place plus 5 cm / 0.05 rad of Gaussian noise per DoF (seed 0); annealing seed 1."""
+    from torchmocap.body import CapsuleBody
+    from torchmocap.data.bodytrack import load_bodytrack
+    from torchmocap.filters.optim.anneal import anneal, default_diffusion
+    from torchmocap.likelihoods import FrameEnergy, SilhouetteLikelihood
+    from torchmocap.skeleton import human31
+
+    sk = human31()
+    body = CapsuleBody(sk)
+    x0 = sk.zero_pose() + 0.05 * torch.randn(particles, sk.num_dofs,
+                                             generator=torch.Generator().manual_seed(0))
+    x0[:, 0] += 0.15
+    x0[:, 1] += 0.9
+    lik = {}
+
+    def load():
+        rig, _, masks = load_bodytrack(root)
+        if "term" not in lik:  # the term (and its compiled energy) is built once
+            lik["term"] = SilhouetteLikelihood(body, rig.float(), fg_samples=64,
+                                               compile=compiled)
+        frame = SimpleNamespace(silhouettes=masks, view_dropped=None)
+        return FrameEnergy(lik["term"], lik["term"].prepare(frame), sk)
+
+    energy = load()
+
+    def run(V=None):
+        return anneal(V or energy, x0, layers=layers, diffusion=default_diffusion(layers),
+                      lower=sk.lower, upper=sk.upper,
+                      generator=torch.Generator().manual_seed(1))
+
+    return run, lambda: run(load())
+
+
+def _timed(fn) -> tuple[float, float]:
+    """Wall and CPU (all threads of this process) seconds of ``fn()``."""
+    c0, t0 = time.process_time(), time.perf_counter()
+    fn()
+    return time.perf_counter() - t0, time.process_time() - c0
+
+
+def real_frame(repeats: int, threads: int, peer_dir: Path, frame_dir: Path,
+               compiled: bool = False) -> list[str]:
+    """Our real-frame annealing and PARSEC bodytrack's, interleaved, as markdown lines.
+
+    Per workload (200 x 15, 4000 x 5) and round: PARSEC with 1 thread (serial code) and with 2
+    (OpenMP), each with the workload's layers and with one layer (for its annealing-only
+    estimate, :func:`bodytrack_peer.anneal_only`), then our annealing and our load + prepare +
+    annealing on ``threads`` threads (eager, and with ``compiled`` also the compiled energy);
+    every other round in the reverse order, so both sides see the same load. Medians over the
+    rounds. PARSEC's times are whole processes (start, calibration and image loading, edge
+    maps, the initial weighting, the layers, the pose file); ours are in-process (the
+    interpreter's start and imports excluded), see :func:`_real_frame_anneal`."""
+    import bodytrack_peer as bp
+
+    med = statistics.median
+    try:
+        peer = bp.Peer(peer_dir, frame_dir)
+    except bp.PeerUnavailable as e:
+        return [f"PARSEC bodytrack rows skipped: {e}"]
+    variants = ["eager"] + (["compiled"] if compiled else [])
+    lines = []
+    with peer:
+        lines.append(f"PARSEC bodytrack built from {peer_dir} in {peer.build_seconds:.1f} s; "
+                     f"load average at the start {os.getloadavg()[0]:.2f}; {repeats} rounds")
+        for particles, layers in ((200, 15), (4000, 5)):
+            steps = [(f"p{n}_{k}", functools.partial(peer.run, particles, k, n))
+                     for n in (1, 2) for k in (layers, 1)]
+            for v in variants:
+                run, load_and_run = _real_frame_anneal(frame_dir, particles, layers,
+                                                       v == "compiled")
+                t0 = time.perf_counter()
+                run()  # warm-up (and compilation)
+                if v == "compiled":
+                    lines.append(f"(compiling and a first {particles} x {layers} pass: "
+                                 f"{time.perf_counter() - t0:.1f} s)")
+                steps += [(v, functools.partial(_timed, run)),
+                          (f"{v}_load", functools.partial(_timed, load_and_run))]
+            got: dict[str, list[tuple[float, float]]] = {name: [] for name, _ in steps}
+            for i in range(repeats):
+                for name, fn in (steps if i % 2 == 0 else steps[::-1]):
+                    r = fn()
+                    got[name].append((r.wall, r.cpu) if isinstance(r, bp.PeerRun) else r)
+            wall = {k: med(w for w, _ in v) for k, v in got.items()}
+            cpu = {k: med(c for _, c in v) for k, v in got.items()}
+            est = {n: bp.anneal_only(wall[f"p{n}_{layers}"], wall[f"p{n}_1"], layers)
+                   for n in (1, 2)}
+            est_cpu = {n: bp.anneal_only(cpu[f"p{n}_{layers}"], cpu[f"p{n}_1"], layers)
+                       for n in (1, 2)}
+            lines += ["", f"| {particles} x {layers}, 4 views 640x480 | wall s (median) | "
+                          "CPU s (median) |", "|---|---|---|"]
+            for v in variants:
+                lines += [f"| ours ({v} energy, {threads} threads): annealing | {wall[v]:.3f} | "
+                          f"{cpu[v]:.3f} |",
+                          f"| ours ({v}): load + prepare + annealing | {wall[v + '_load']:.3f} | "
+                          f"{cpu[v + '_load']:.3f} |"]
+            for n in (1, 2):
+                th = f"{n} thread{'s' * (n > 1)}"
+                lines += [f"| PARSEC {th}: whole process | {wall[f'p{n}_{layers}']:.3f} | "
+                          f"{cpu[f'p{n}_{layers}']:.3f} |",
+                          f"| PARSEC {th}: annealing (est.) | {est[n]:.3f} | {est_cpu[n]:.3f} |"]
+            best = min((1, 2), key=lambda n: wall[f"p{n}_{layers}"])
+            for n, which in ((best, "its faster configuration"),
+                             (threads, "the same number of threads")):
+                if n not in (1, 2):
+                    continue
+                whole = wall[f"p{n}_{layers}"]
+                lines.append(f"\nratios PARSEC / ours (> 1: ours faster), wall medians, PARSEC "
+                             f"with {which} ({n} thread{'s' * (n > 1)}):")
+                for v in variants:
+                    lines.append(f"- {v}: whole process vs our load + prepare + annealing "
+                                 f"{whole / wall[v + '_load']:.2f}x; whole process vs our "
+                                 f"annealing {whole / wall[v]:.2f}x; annealing (est.) vs our "
+                                 f"annealing {est[n] / wall[v]:.2f}x")
+        lines.append(f"\nload average at the end {os.getloadavg()[0]:.2f}")
+    return lines
+
+
+#: the parts of a frame :func:`profile` reports: (label, file, function) of cProfile entries
+PARTS = [("annealing, all layers", "anneal.py", "anneal"),
+         ("energy (FrameEnergy)", "base.py", "__call__"),
+         ("- forward kinematics (Poses.kinematics)", "base.py", "kinematics"),
+         ("- capsule ends incl. kinematics (Poses.endpoints)", "base.py", "endpoints"),
+         ("- silhouette term (after its capsule ends)", "silhouette.py", "energy"),
+         ("- appearance term", "appearance.py", "energy"),
+         ("proposal draws (ManifoldProposal.sample)", "manifold.py", "sample"),
+         ("diffusion (CovarianceDiffusion)", "anneal.py", "__call__"),
+         ("ESS-targeted beta (ess_target_beta)", "schedules.py", "ess_target_beta"),
+         ("selection (resampler)", "resampling.py", "__call__")]
+
+
+def profile(frames: int, compiled: bool, frame_dir: Path) -> list[str]:
+    """cProfile of tracker ``p`` (``frames`` frames after a warm-up) and of the real-frame
+    200 x 15 annealing (5 passes): the cumulative time of each part of :data:`PARTS` and its
+    share of the total (the parts nest: the energy holds its terms; the term that asks for the
+    capsule ends first pays for them, so the terms are given without them)."""
+    import cProfile
+    import pstats
+
+    from torchmocap.assembly import Runtime, build_tracker, tracker_config
+    from torchmocap.data import synthesize
+    from torchmocap.data.subject import fit_subject
+    from torchmocap.filters import Tracker
+    from torchmocap.io import bundled_clip_path, load_motion
+
+    clip = load_motion(bundled_clip_path()).resample(25).slice(0, frames + 1)
+    seq = synthesize(fit_subject(clip), "studio", seed=0)
+    tracking = seq.imu.tracking.nonzero()[:, 0]
+    obs = [Tracker.observe(seq.frame(t), tracking) for t in range(seq.num_frames)]
+    tr = build_tracker(tracker_config("p", COMPILED if compiled else []),
+                       Runtime.from_sequence(seq), seed=0)
+
+    def track():
+        st = tr.init(seq.ground_truth.theta[0].float(), obs[0])
+        for t in range(1, seq.num_frames):
+            st = tr.step(st, obs[t])[0]
+
+    variant = "compiled" if compiled else "eager"
+    jobs = [(f"tracker p ({variant}), {frames} frames", track)]
+    if (frame_dir / "CALIB").is_dir():
+        run, _ = _real_frame_anneal(frame_dir, 200, 15, compiled)
+        jobs.append((f"real frame, 200 x 15 ({variant}), 5 passes",
+                     lambda: [run() for _ in range(5)]))
+    lines = []
+    for label, fn in jobs:
+        fn()  # warm-up (and compilation)
+        prof = cProfile.Profile()
+        t0 = time.perf_counter()
+        prof.runcall(fn)
+        total = time.perf_counter() - t0
+        stats = pstats.Stats(prof).stats
+        cum = {}
+        for (file, _, name), v in stats.items():
+            key = (Path(file).name, name)
+            cum[key] = cum.get(key, 0.0) + v[3]
+        ends = cum.get(("base.py", "endpoints"), 0.0)
+        lines += ["", f"| {label} (profiled {total:.2f} s) | cumulative s | share |",
+                  "|---|---|---|"]
+        for part, file, name in PARTS:
+            if (file, name) not in cum:
+                continue
+            t = cum[(file, name)]
+            if file == "silhouette.py":
+                t -= ends  # the first term asked for the capsule ends
+            lines.append(f"| {part} | {t:.3f} | {100 * t / total:.1f}% |")
+    return lines
 
 
 def _worker(threads: int, frames: int, appearance: bool) -> None:
@@ -231,7 +418,20 @@ def main():
                     help="another checkout to time in the same run (before/after)")
     ap.add_argument("--rounds", type=int, default=60,
                     help="frames timed per checkout with --baseline")
-    ap.add_argument("--no-bodytrack", action="store_true", help="skip the real-frame row")
+    ap.add_argument("--no-bodytrack", action="store_true", help="skip the real-frame rows")
+    ap.add_argument("--only-bodytrack", action="store_true",
+                    help="only the real-frame rows (ours beside PARSEC)")
+    ap.add_argument("--repeats", type=int, default=7,
+                    help="interleaved rounds of the real-frame rows")
+    ap.add_argument("--compile", action="store_true",
+                    help="also the compiled variants: tracker p with every compile option of "
+                         "its components, the real-frame energy with the silhouette term's")
+    ap.add_argument("--peer", type=Path, default=REPO.parent / "shared" / "peers" /
+                    "parsec_bodytrack", help="PARSEC bodytrack's sources (with build.sh)")
+    ap.add_argument("--frame", type=Path, default=REPO.parent / "shared" / "data" /
+                    "multiview" / "bodytrack_sequenceB_1", help="the bodytrack frame folder")
+    ap.add_argument("--profile", action="store_true",
+                    help="only cProfile tables of tracker p and the real-frame annealing")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--no-appearance", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -241,10 +441,17 @@ def main():
     torch.set_num_threads(args.threads)
     print(f"# torch {torch.__version__}, {torch.get_num_threads()} threads, "
           f"{platform.processor() or platform.machine()}")
+    if args.profile:
+        print("\n".join(profile(args.frames, args.compile, args.frame.resolve())))
+        return
     if args.baseline is None:
-        print("| workload | time | throughput |")
-        print("|---|---|---|")
-        print("\n".join(measure(args.frames, not args.no_bodytrack)))
+        if not args.only_bodytrack:
+            print("| workload | time | throughput |")
+            print("|---|---|---|")
+            print("\n".join(measure(args.frames, args.compile)))
+        if not args.no_bodytrack:
+            print("\n".join(real_frame(args.repeats, args.threads, args.peer.resolve(),
+                                       args.frame.resolve(), args.compile)))
         return
     before_after(args.baseline.resolve(), args.threads, args.frames, args.rounds)
 

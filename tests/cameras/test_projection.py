@@ -185,6 +185,38 @@ class TestProject:
         with pytest.raises(ValueError, match="points"):
             rig.project_planar(pts[None])
 
+    @pytest.mark.parametrize("dist", [False, True])
+    def test_planar_without_visibility_same_pixels(self, dist):
+        rig = _random_rig(dist=dist).float()
+        pts = _points(400).float()
+        u, v, z, ok = rig.project_planar(pts)
+        u2, v2, z2, none = rig.project_planar(pts, visibility=False)
+        assert none is None and ok is not None
+        assert torch.equal(u, u2) and torch.equal(v, v2) and torch.equal(z, z2)
+        # the planar lens model against the stacked (kornia) one, in float32
+        pix = rig.project(pts)[0]
+        torch.testing.assert_close(torch.stack([u, v], -1), pix, atol=2e-3, rtol=0)
+
+    def test_planar_beyond_the_monotonic_radius_as_project(self):
+        """Points far off the optical axis (beyond k1 < 0's fold, where the polynomial would
+        bring them back into the image) get project_points' pixels on the planar path too,
+        visibility or not, and stay outside the image."""
+        rig = _random_rig(dist=True)
+        g = torch.Generator().manual_seed(3)
+        # points 1 m in front of each camera's plane, 1-6 m sideways: normalised radius 1-6
+        side = torch.rand(40, 1, generator=g, dtype=F64) * 5 + 1
+        ang = torch.rand(40, 1, generator=g, dtype=F64) * 2 * torch.pi
+        xc = torch.cat([side * ang.cos(), side * ang.sin(), torch.ones(40, 1, dtype=F64)], 1)
+        pts = (xc - rig.t[0]) @ rig.R[0]  # camera 0's frame to the world
+        pix, _, vis = rig.project(pts)
+        for visibility in (True, False):
+            u, v, _, _ = rig.project_planar(pts, visibility=visibility)
+            assert torch.equal(torch.stack([u, v], -1), pix)
+        assert not bool(vis[0].any())
+        inside = (pix[0, :, 0] >= 0) & (pix[0, :, 0] < 640) & (pix[0, :, 1] >= 0) & \
+            (pix[0, :, 1] < 480)
+        assert not bool(inside.any())
+
     def test_module(self):
         rig = _random_rig()
         pts = _points()

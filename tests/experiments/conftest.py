@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import sys
 from pathlib import Path
 
 import pytest
@@ -19,6 +20,7 @@ def load_script():
         path = ROOT / "experiments" / rel
         spec = importlib.util.spec_from_file_location(path.stem + "_" + path.parent.name, path)
         mod = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = mod  # dataclasses look their module up by name
         spec.loader.exec_module(mod)
         return mod
 

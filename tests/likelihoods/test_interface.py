@@ -186,3 +186,51 @@ def test_log_likelihood_is_minus_energy(sk):
     t = ElbowTerm(0.2)
     p = Poses(sk.zero_pose((2,)), sk)
     assert torch.equal(t.log_likelihood(p, None), -t.energy(p, None))
+
+
+def test_blockwise_splits_rows_into_near_equal_blocks():
+    from torchmocap.likelihoods.base import blockwise, check_block
+
+    seen = []
+
+    def rows(x, scale):
+        seen.append(x.shape[0])
+        return scale * x.sum(-1)
+
+    x = torch.arange(30.0).reshape(10, 3)
+    for block in (None, 10, 64):
+        seen.clear()
+        assert torch.equal(blockwise(rows, x, block, 2.0), 2 * x.sum(-1)) and seen == [10]
+    for block, sizes in ((4, [4, 3, 3]), (3, [3, 3, 2, 2]), (1, [1] * 10)):
+        seen.clear()
+        assert torch.equal(blockwise(rows, x, block, 1.0), x.sum(-1))
+        assert seen == sizes and max(sizes) <= block
+    for bad in (0, -1, 2.5, True, "8"):
+        with pytest.raises(ValueError, match="block: expected an int >= 1"):
+            check_block(bad)
+    assert check_block(None) is None and check_block(7) == 7
+
+
+def test_silhouette_blocks_give_the_same_energies():
+    from torchmocap.cameras import make_ring_rig
+    from torchmocap.likelihoods.silhouette import (
+        SilhouetteLikelihood,
+        render_capsule_silhouettes,
+    )
+
+    sk = human31()
+    body = CapsuleBody(sk)
+    rig = make_ring_rig(3, image_size=(160, 120)).float()
+    masks = render_capsule_silhouettes(body, rig, sk.zero_pose())
+    th = sk.zero_pose() + 0.1 * torch.randn(50, sk.num_dofs,
+                                            generator=torch.Generator().manual_seed(0))
+    frame = Frame(index=0, time=0.0, silhouettes=masks)
+    one = SilhouetteLikelihood(body, rig, block=None)
+    obs = one.prepare(frame)
+    ref = one.energy(Poses(th, sk), obs)
+    assert float(ref.std()) > 0.01
+    for block in (7, 16, 50):
+        got = SilhouetteLikelihood(body, rig, block=block).energy(Poses(th, sk), obs)
+        torch.testing.assert_close(got, ref, atol=1e-6, rtol=0)
+    with pytest.raises(ValueError, match="block"):
+        SilhouetteLikelihood(body, rig, block=0)

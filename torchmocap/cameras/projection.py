@@ -270,28 +270,73 @@ def _visible(u: Tensor, v: Tensor, depth: Tensor, image_size: Tensor | None, C: 
 
 
 def project_points_planar(points: Tensor, K: Tensor, R: Tensor, t: Tensor,
-                          dist: Tensor | None = None, image_size: Tensor | None = None
-                          ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+                          dist: Tensor | None = None, image_size: Tensor | None = None,
+                          visibility: bool = True, distorted: bool | None = None
+                          ) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
     """:func:`project_points` of a flat list ``points (M, 3)``, returned as planes.
 
     Returns ``u, v, depth, visible``, each ``(C, M)``: the layout batched likelihoods reduce
     over (views outermost, contiguous points). For a pinhole rig it is one matrix product
-    ``(K R | K t)`` followed by the perspective division.
+    ``(K R | K t)`` followed by the perspective division; with distortion, one product
+    ``(R | t)``, the division and the lens model on the planes (:func:`_distort_planar`, the
+    pixels of :func:`project_points` to the bit when the skew is 0, also beyond the lens
+    model's monotonic radius). ``visibility=False`` skips
+    the visibility test (``visible`` is then None) for callers that handle points behind the
+    camera or outside the image themselves. ``distorted``: whether ``dist`` has a non-zero
+    coefficient, when the caller knows (None: read from ``dist``, a host read that would split
+    a compiled graph).
     """
     if points.dim() != 2 or points.shape[-1] != 3:
         raise ValueError(f"points: expected shape (M, 3), got {tuple(points.shape)}")
     C = _check_rig_params(K, dist, R, t)
-    if dist is not None and bool((dist != 0).any()):
-        pix, depth, visible = project_points(points, K, R, t, dist, image_size)
-        return pix[..., 0], pix[..., 1], depth, visible
     Kp = _pinhole(K)
+    if distorted is None:
+        distorted = dist is not None and bool((dist != 0).any())
+    if distorted:
+        # world_to_camera's product and sum, then the perspective division, as planes
+        pc = (R.reshape(3 * C, 3) @ points.T + t.reshape(3 * C, 1)).view(C, 3, -1)
+        depth = pc[:, 2]
+        z = depth.clamp_min(_DEPTH_EPS)
+        x, y = pc[:, 0] / z, pc[:, 1] / z
+        # beyond the lens model's monotonic radius, distorted from that radius along the
+        # point's direction, as in project_points (a factor of exactly 1 inside it)
+        rmax = max_monotonic_radius(dist)[:, None]  # (C, 1)
+        r2 = x * x + y * y
+        shrink = (rmax / r2.clamp_min(1e-30).sqrt()).clamp(max=1.0)
+        u, v = _distort_planar(x * shrink, y * shrink, Kp, dist)
+        if not visibility:
+            return u, v, depth, None
+        inside = r2 < rmax * rmax
+        return u, v, depth, inside & _visible(u, v, depth, image_size, C)
     KR = (Kp @ R).reshape(3 * C, 3)
     Kt = (Kp @ t[..., None]).reshape(3 * C, 1)
     h = torch.addmm(Kt, KR, points.T).view(C, 3, -1)
     depth = h[:, 2]
     z = depth.clamp_min(_DEPTH_EPS)
     u, v = h[:, 0] / z, h[:, 1] / z
-    return u, v, depth, _visible(u, v, depth, image_size, C)
+    return u, v, depth, _visible(u, v, depth, image_size, C) if visibility else None
+
+
+def _distort_planar(x: Tensor, y: Tensor, Kp: Tensor, dist: Tensor) -> tuple[Tensor, Tensor]:
+    """Distorted pixels ``u, v (C, M)`` of normalised points ``x, y (C, M)`` for pinhole
+    intrinsics ``Kp (C, 3, 3)`` and ``dist (C, 5)``.
+
+    The operations and their order are those of :func:`project_points`' path (the pixel of
+    the undistorted point, back to the normalised plane, the Brown–Conrady polynomial, to
+    pixels), written on planes instead of ``(C, M, 2)`` stacks, so both paths give the same
+    pixels to the bit (for a skew of 0; with a skew the first step may round differently).
+    """
+    fx, s, cx = Kp[:, 0, 0, None], Kp[:, 0, 1, None], Kp[:, 0, 2, None]
+    fy, cy = Kp[:, 1, 1, None], Kp[:, 1, 2, None]
+    x = (fx * x + s * y + cx - cx) / fx
+    y = (fy * y + cy - cy) / fy
+    k1, k2, p1, p2, k3 = (dist[:, i, None] for i in range(5))
+    r2 = x * x + y * y
+    r4 = r2 * r2
+    radial = 1 + k1 * r2 + k2 * r4 + k3 * (r4 * r2)
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return fx * xd + cx, fy * yd + cy
 
 
 def backproject_pixels(pixels: Tensor, K: Tensor, R: Tensor, t: Tensor, dist: Tensor | None = None,

@@ -177,13 +177,18 @@ class CameraRig(nn.Module):
                               self.t.to(points.dtype),
                               self.dist.to(points.dtype) if distort else None, self.image_size)
 
-    def project_planar(self, points: Tensor, distort: bool = True
-                       ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def project_planar(self, points: Tensor, distort: bool = True, visibility: bool = True,
+                       distorted: bool | None = None
+                       ) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
         """``u, v, depth, visible`` planes ``(C, M)`` of world points ``(M, 3)``; see
-        :func:`project_points_planar`."""
+        :func:`project_points_planar` (``visibility=False``: ``visible`` is None;
+        ``distorted``: :attr:`has_distortion` when the caller has read it already)."""
         dt = points.dtype
+        if not distort:
+            distorted = False
         return project_points_planar(points, self.K.to(dt), self.R.to(dt), self.t.to(dt),
-                                     self.dist.to(dt) if distort else None, self.image_size)
+                                     self.dist.to(dt) if distort else None, self.image_size,
+                                     visibility, distorted)
 
     def forward(self, points: Tensor) -> Tensor:
         """Pixels ``(*, C, N, 2)`` of ``(*, N, 3)`` world points (with distortion)."""

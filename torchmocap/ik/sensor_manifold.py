@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from torchmocap.compilation import CompiledFunction
 from torchmocap.geometry import quaternion_to_matrix, wrap_angle
 from torchmocap.geometry.subproblems import (
     axes_are_orthogonal,
@@ -589,12 +590,14 @@ class SensorManifold(nn.Module):
             gimbal=gimbal.t().reshape(*batch, S),
         )
 
-    def compile_inverse(self, **kwargs) -> SensorManifold:
-        """Compile the ``g^{-1}`` core with ``torch.compile(dynamic=True, **kwargs)``.
+    def compile_inverse(self) -> SensorManifold:
+        """Compile the ``g^{-1}`` core with ``torch.compile(dynamic=True)``
+        (:class:`~torchmocap.compilation.CompiledFunction`: eager again if compiling fails).
 
         The first call per input signature compiles (tens of seconds on a CPU); afterwards
         the ~150 small tensor operations run as a few fused kernels. Returns ``self``."""
-        self.__dict__["_solve_impl"] = torch.compile(self._solve, dynamic=True, **kwargs)
+        self.__dict__["_solve_impl"] = CompiledFunction(self._solve, "proposal.compile",
+                                                        dynamic=True)
         return self
 
     def _solve(

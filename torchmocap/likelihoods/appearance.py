@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import torch
 
 from torchmocap.body.capsules import rays_blocked_by_capsules
+from torchmocap.compilation import CompiledFunction
 from torchmocap.likelihoods.base import Likelihood
 
 __all__ = [
@@ -138,11 +139,23 @@ def appearance_energy(kin, body, pattern: dict, rig, images,
     ``body.endpoints(kin)`` when the caller already has them; ``occlusion``: ``"none"``,
     ``"rays"`` or ``"outlier"`` (see the module docstring)."""
     dtype = kin.positions.dtype
-    obs = prepare_images(images, dtype)
     ep = body.endpoints(kin) if endpoints is None else endpoints  # (P, B, 2, 3)
+    t, radial = _per_bone(pattern, ep.shape[1])
+    return _appearance_energy(kin, body, t, radial, rig, prepare_images(images, dtype),
+                              view_valid, ep, occlusion, min_facing)
+
+
+def _appearance_energy(kin, body, t: torch.Tensor, radial: torch.Tensor, rig,
+                       obs: ColourObservation, view_valid: torch.Tensor | None,
+                       ep: torch.Tensor, occlusion: str, min_facing: float,
+                       distorted: bool | None = None) -> torch.Tensor:
+    """:func:`appearance_energy` on checked inputs: the pattern as ``t (B, k)``,
+    ``radial (B, k, 3)``, the images prepared, the endpoints ``ep (P, B, 2, 3)`` given;
+    ``distorted``: the rig's ``has_distortion`` when known (then no host read of tensor values
+    is left, except with ``occlusion="rays"``, and the function compiles into one graph)."""
+    dtype = kin.positions.dtype
     P, B = ep.shape[:2]
-    t, radial = _per_bone(pattern, B)
-    t, radial = t.to(dtype), radial.to(dtype)
+    t, radial = t.to(ep.device, dtype), radial.to(ep.device, dtype)
     Rb = kin.rotations[:, body.parent_index]  # (P, B, 3, 3)
     n = torch.einsum("pbij,bkj->pbki", Rb, radial)  # (P, B, k, 3) surface normals
     a = ep[:, :, 0, None]
@@ -158,7 +171,7 @@ def appearance_energy(kin, body, pattern: dict, rig, images,
                                           body.radii.to(dtype), own).reshape(-1, P * own.numel())
     pts, n = pts.reshape(-1, 3), n.reshape(-1, 3)  # (M, 3) with M = P * N
     # view-major planes (C, M): the reductions over views below run over a leading dim
-    u, v, _, vis = rig.project_planar(pts)
+    u, v, _, vis = rig.project_planar(pts, distorted=distorted)
     centres = rig.camera_centers().to(dtype)  # (C, 3)
     # (c - x) . n > cos_min |c - x|: the point faces the camera (by more than grazing)
     facing = centres @ n.T - (pts * n).sum(-1)  # (C, M)
@@ -218,6 +231,9 @@ class AppearanceLikelihood(Likelihood):
             angle a point's pixel lies on its limb's outline and reads the background or the
             part behind, so even the true pose pays there (opt-in: config key
             ``+likelihood.terms.appearance.min_facing=0.5``).
+        compile: run the energy through ``torch.compile`` (:mod:`torchmocap.compilation`:
+            the first call compiles; not bit-identical to the eager energy, falls back to it
+            when compiling fails).
 
     ``requires = ("images",)``; ``prepare(frame)`` converts the colour images once per frame
     (views flagged in ``frame.view_dropped`` are excluded).
@@ -226,8 +242,11 @@ class AppearanceLikelihood(Likelihood):
     requires = ("images",)
 
     def __init__(self, body, rig, axial: int = 3, around: int = 4, occlusion: str = "none",
-                 min_facing: float = 0.0):
+                 min_facing: float = 0.0, compile: bool = False):
         super().__init__()
+        if not isinstance(compile, bool):
+            raise ValueError(f"compile: expected true or false, got {compile!r}")
+        self._energy = CompiledFunction(_appearance_energy, "terms.appearance.compile", compile)
         if isinstance(min_facing, bool) or not isinstance(min_facing, (int, float)) \
                 or not 0 <= min_facing < 1:
             raise ValueError(f"min_facing: expected a cosine in [0, 1), got {min_facing!r}")
@@ -239,6 +258,7 @@ class AppearanceLikelihood(Likelihood):
         self.rig = rig
         self.axial, self.around = int(axial), int(around)
         self.pattern = body_surface_pattern(body, self.axial, self.around)
+        self._t, self._radial = _per_bone(self.pattern, body.num_bones)
 
     def prepare(self, frame) -> tuple[ColourObservation, torch.Tensor | None]:
         view_valid = None
@@ -252,10 +272,11 @@ class AppearanceLikelihood(Likelihood):
 
     def energy(self, poses, observation) -> torch.Tensor:
         colours, view_valid = observation
-        return appearance_energy(poses.kinematics, self.body, self.pattern, self.rig, colours,
-                                 view_valid, endpoints=poses.endpoints(self.body),
-                                 occlusion=self.occlusion, min_facing=self.min_facing)
+        return self._energy(poses.kinematics, self.body, self._t, self._radial, self.rig,
+                            colours, view_valid, poses.endpoints(self.body), self.occlusion,
+                            self.min_facing, self.rig.has_distortion)
 
     def extra_repr(self) -> str:
         return (f"axial={self.axial}, around={self.around}, occlusion={self.occlusion!r}, "
-                f"min_facing={self.min_facing}")
+                f"min_facing={self.min_facing}" + (", compile=True" if self._energy.enabled
+                                                   else ""))

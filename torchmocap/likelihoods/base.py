@@ -43,7 +43,8 @@ from typing import Any
 import torch
 from torch import nn
 
-__all__ = ["FrameEnergy", "Likelihood", "Poses", "WeightedSum", "check_energy"]
+__all__ = ["FrameEnergy", "Likelihood", "Poses", "WeightedSum", "blockwise", "check_block",
+           "check_energy"]
 
 
 class Poses:
@@ -88,6 +89,27 @@ class Poses:
             ep = body.endpoints(kin)
             self._endpoints[key] = ep
         return ep
+
+
+def blockwise(fn, x: torch.Tensor, block: int | None, *args: Any) -> torch.Tensor:
+    """``fn(x, *args)`` of ``x (P, ...)`` evaluated block by block along dim 0 and concatenated:
+    one call when ``block`` is None or ``P <= block``, else ``ceil(P / block)`` blocks of
+    near-equal size (at most two sizes, so a compiled ``fn`` sees few shapes). Terms whose
+    temporaries grow with ``P`` stay in the caches this way (the silhouette term at 4000
+    particles: 3x faster in blocks of 512)."""
+    P = x.shape[0]
+    if block is None or P <= block:
+        return fn(x, *args)
+    return torch.cat([fn(part, *args) for part in x.tensor_split(-(-P // block))])
+
+
+def check_block(block: Any) -> int | None:
+    """``block`` (particles per block of a term's energy) checked: an int >= 1 or None."""
+    if block is not None and (isinstance(block, bool) or not isinstance(block, int)
+                              or block < 1):
+        raise ValueError(f"block: expected an int >= 1 (particles per block) or null, got "
+                         f"{block!r}")
+    return block
 
 
 def check_energy(v: Any, num: int, name: str) -> torch.Tensor:

@@ -315,7 +315,9 @@ def _evaluate(
     decode: Callable[[torch.Tensor], object] | None,
     x: torch.Tensor,
     layer: int,
-) -> torch.Tensor:
+) -> tuple[torch.Tensor, bool]:
+    """The energies ``(P,)`` of ``x`` (typed errors for NaN, ``-inf`` or no finite energy) and
+    whether all of them are finite."""
     with torch.no_grad():
         v = energy(decode(x) if decode is not None else x)
     p = x.shape[0]
@@ -327,6 +329,8 @@ def _evaluate(
         )
     if not v.is_floating_point():
         v = v.to(x.dtype)
+    if bool(torch.isfinite(v).all()):  # the common case: one test
+        return v, True
     nan = torch.isnan(v)
     if bool(nan.any()):
         raise ValueError(
@@ -337,7 +341,7 @@ def _evaluate(
     if not bool(torch.isfinite(v).any()):
         raise ValueError(f"energy: returned +inf for every particle at layer {layer}")
     check_energies(v, "energy")
-    return v
+    return v, False
 
 
 def anneal(
@@ -423,7 +427,7 @@ def anneal(
             if x.shape != (p, particles.shape[1]):
                 raise ValueError(f"diffusion: changed the particle shape to {tuple(x.shape)}")
             x = bound_particles(x, lo, hi, boundary)
-        v = _evaluate(energy, decode, x, k)
+        v, all_finite = _evaluate(energy, decode, x, k)
         beta = torch.as_tensor(sched(k, v), dtype=torch.float64)
         if beta.numel() != 1 or not bool(beta >= 0) or bool(torch.isnan(beta)):
             raise ValueError(f"schedule: returned an invalid beta {beta} at layer {k}")
@@ -435,11 +439,15 @@ def anneal(
                 raise ValueError(f"log_prior: expected ({p},) values, not NaN")
             lw = lw + lp.to(lw)
         log_w = (lw - torch.logsumexp(lw, 0)).to(x.dtype)
-        finite = torch.isfinite(v)
         betas[k] = beta.reshape(())
         ess[k] = effective_sample_size(lw)
-        mean_e[k] = v[finite].to(torch.float64).mean()
-        i_min = int(torch.argmin(torch.where(finite, v, math.inf)))
+        if all_finite:
+            mean_e[k] = v.to(torch.float64).mean()
+            i_min = int(torch.argmin(v))
+        else:
+            finite = torch.isfinite(v)
+            mean_e[k] = v[finite].to(torch.float64).mean()
+            i_min = int(torch.argmin(torch.where(finite, v, math.inf)))
         min_e[k] = float(v[i_min])
         if min_e[k] < best_e:
             best, best_e = x[i_min].clone(), min_e[k].clone()

@@ -64,6 +64,8 @@ def check_energies(energies: torch.Tensor, name: str = "energies") -> None:
         raise ValueError(
             f"{name}: expected shape (..., P) with P >= 1, got {tuple(energies.shape)}"
         )
+    if bool(torch.isfinite(energies).all()):  # the common case: one test
+        return
     if bool(torch.isnan(energies).any()):
         n = int(torch.isnan(energies).sum())
         raise ValueError(f"{name}: {n} NaN energies (the energy function returned NaN)")
