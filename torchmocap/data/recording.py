@@ -45,6 +45,7 @@ from torchmocap.data.recording_masks import (
     read_plates,
     recording_masks,
 )
+from torchmocap.data.settings import with_defaults
 from torchmocap.data.subject_start import hull_start, keypoint_start, subject_settings
 from torchmocap.io.frames import (
     IMAGE_SUFFIXES,
@@ -229,12 +230,7 @@ def _read_masks(cam: RecordingCamera, frames: range, size: tuple[int, int], scal
 
 
 def _keypoint_settings(keypoints) -> dict[str, Any]:
-    given = {} if keypoints is None else dict(keypoints)
-    unknown = sorted(set(given) - set(KEYPOINT_DEFAULTS))
-    if unknown:
-        raise ValueError(f"data.keypoints: unknown setting(s) {unknown}; expected "
-                         f"{sorted(KEYPOINT_DEFAULTS)}")
-    s = {**KEYPOINT_DEFAULTS, **given}
+    s = with_defaults("data.keypoints", keypoints, KEYPOINT_DEFAULTS)
     if s["source"] not in _SOURCES:
         raise ValueError(f"data.keypoints.source: expected one of {list(_SOURCES)}, got "
                          f"{s['source']!r}")

@@ -28,6 +28,8 @@ from typing import Any
 
 import torch
 
+from torchmocap.data.settings import with_defaults
+
 __all__ = ["MAX_FOREGROUND", "SCALE_RANGE", "SUBJECT_DEFAULTS", "hull_start", "keypoint_start",
            "subject_settings"]
 
@@ -49,12 +51,7 @@ def subject_settings(subject: Mapping[str, Any] | None) -> dict[str, Any]:
     Raises:
         ValueError: an unknown key or a bad value, naming ``data.subject.<key>``.
     """
-    given = {} if subject is None else dict(subject)
-    unknown = sorted(set(given) - set(SUBJECT_DEFAULTS))
-    if unknown:
-        raise ValueError(f"data.subject: unknown setting(s) {unknown}; expected "
-                         f"{sorted(SUBJECT_DEFAULTS)}")
-    s = {**SUBJECT_DEFAULTS, **given}
+    s = with_defaults("data.subject", subject, SUBJECT_DEFAULTS)
     n = s["frames"]
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ValueError(f"data.subject.frames: expected an int >= 1, got {n!r}")
