@@ -44,3 +44,11 @@ def test_no_merge_conflict_markers():
                 bad.append(f"{path.relative_to(ROOT)}:{n}")
     assert not bad, bad
 
+
+def test_readme_links_resolve():
+    import re
+
+    text = (ROOT / "README.md").read_text()
+    targets = re.findall(r"\]\(([^)#\s]+)", text)
+    missing = [t for t in targets if not t.startswith("http") and not (ROOT / t).exists()]
+    assert targets and not missing, missing

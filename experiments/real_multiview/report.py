@@ -92,6 +92,13 @@ def _config(run: Path) -> dict:
     return cfg if isinstance(cfg, dict) else {}
 
 
+def _tracker_label(name, cfg: dict) -> str:
+    """The preset's name, and its smoother's class when the run smoothed its track."""
+    smoother = ((cfg.get("tracker") or {}).get("smoother") or {})
+    target = smoother.get("_target_") if isinstance(smoother, dict) else None
+    return f"{name} + {str(target).rsplit('.', 1)[-1]}" if target else str(name)
+
+
 def _heldout_camera(run: Path, metrics: dict, cfg: dict, det: Detections) -> int:
     cam = metrics["heldout"].get("camera")
     if cam is None:
@@ -168,9 +175,11 @@ def read_run(run: Path, det: Detections, keypoint_map: str = "body_25b") -> dict
     full[[where[t] for t in frames]] = X
     row = score_row(heldout_scores(full, det, c), full, det.fps)
     row["seconds_per_frame"] = metrics.get("seconds_per_frame")
-    return {"tracker": str(metrics.get("tracker", run.name)), "seed": metrics.get("seed"),
+    return {"tracker": _tracker_label(metrics.get("tracker", run.name), cfg),
+            "seed": metrics.get("seed"),
             "camera": det.cameras[c], "row": row, "run": str(run),
-            "reported": {"heldout": {k: held[k] for k in HELDOUT_KEYS},
+            "reported": {"heldout": {k: held[k] for k in (*HELDOUT_KEYS, "pixels")
+                                     if k in held},
                          "consistency": metrics.get("consistency")}}
 
 
@@ -273,18 +282,28 @@ def table(peers: dict, tm: dict, notes: list[str]) -> str:
                 if c in m["reported"]]
     if reported:
         lines += ["", "## As the runs report them (metrics.json `heldout`, `consistency`)", "",
-                  "In the run's own pixels and keypoints (the working scale of its images).", "",
-                  "| method | held out | median px | mean px | PCK@5 % | PCK@10 % | "
-                  "consistency |", "|---|---|---:|---:|---:|---:|---|"]
+                  "The run's own scores: its pixels (`heldout.pixels`) and its skeleton's "
+                  "keypoints; bone CV over the limb segments the keypoint map has, jitter over "
+                  "every mapped keypoint.", "",
+                  "| method | held out | pixels | median px | mean px | PCK@5 % | PCK@10 % | "
+                  "bone CV % | jitter m/s² |", "|---|---|---|---:|---:|---:|---:|---:|---:|"]
         for m, c, rep in reported:
             h = rep["heldout"]
-            cons = rep["consistency"]
-            flat = ", ".join(f"{k} {v:.3g}" for k, v in cons.items()
-                             if isinstance(v, (int, float))) if isinstance(cons, dict) else "–"
-            lines.append(f"| {m['label']} | {c} | {_f(h['median_px'])} | {_f(h['mean_px'])} | "
+            cv, jit = _reported_consistency(rep["consistency"])
+            lines.append(f"| {m['label']} | {c} | {h.get('pixels', '–')} | "
+                         f"{_f(h['median_px'])} | {_f(h['mean_px'])} | "
                          f"{_f(h['pck_05'], '.1f', 100)} | {_f(h['pck_10'], '.1f', 100)} | "
-                         f"{flat or '–'} |")
+                         f"{_f(cv, '.2f')} | {_f(jit)} |")
     return "\n".join(lines) + "\n"
+
+
+def _reported_consistency(cons) -> tuple[float | None, float | None]:
+    """(bone-length CV %, jitter m/s²) of a run's ``consistency`` (None where absent)."""
+    if not isinstance(cons, dict):
+        return None, None
+    cv = (cons.get("bone_length_cv_percent") or {}).get("mean")
+    jit = (cons.get("jitter_m_s2") or {}).get("mean")
+    return cv, jit
 
 
 def missing_notes(tm: dict, cams: list[str], failed: list[Path], problems: list[str]
@@ -348,7 +367,9 @@ def plot_heldout(peers: dict, tm: dict, path: Path) -> None:
         ax.set_xlabel("time (s)")
     handles, labels = axes.flat[0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=2, fontsize=8)
-    fig.tight_layout(rect=(0, 0.04 + 0.03 * math.ceil(len(labels) / 2) / rows, 1, 1))
+    # the legend's rows (about 0.2 inch each) below the panels and their x label
+    legend_in = 0.35 + 0.2 * math.ceil(len(labels) / 2)
+    fig.tight_layout(rect=(0, legend_in / fig.get_figheight(), 1, 1))
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100, format="png")
     plt.close(fig)

@@ -211,8 +211,10 @@ def _fake_run(run, fit=None, camera="cam02", recording="pose2sim_balancing", hel
                                                                 fps=60.0))
     metrics = {"tracker": "real_fake", "seed": 0, "seconds_per_frame": 1.25}
     if heldout:
-        metrics["heldout"] = {"median_px": 7.0, "mean_px": 9.0, "pck_05": 0.5, "pck_10": 0.8}
-        metrics["consistency"] = {"bone_cv_mean": 0.1, "jitter": 3.0}
+        metrics["heldout"] = {"median_px": 7.0, "mean_px": 9.0, "pck_05": 0.5, "pck_10": 0.8,
+                              "pixels": "full-size images"}
+        metrics["consistency"] = {"bone_length_cv_percent": {"mean": 0.25},
+                                  "jitter_m_s2": {"mean": 3.0}}
     (run / "metrics.json").write_text(json.dumps(metrics))
     (run / ".hydra").mkdir()
     (run / ".hydra" / "config.yaml").write_text(yaml.safe_dump({
@@ -245,10 +247,18 @@ def test_report_reads_a_torchmocap_run_and_names_what_is_missing(report, no_anip
     assert "missing** held-out camera(s) cam01, cam03, cam04" in md
     assert "tracked /somewhere/another_recording" in md
     assert f"failed run (failure.json): `{runs / 'failed'}`" in md
-    assert "| torchmocap `real_fake` (seed 0) | cam02 | 7.0 | 9.0 | 50.0 | 80.0 |" in md
+    assert "| torchmocap `real_fake` (seed 0) | cam02 | full-size images | 7.0 | 9.0 | 50.0 | " \
+        "80.0 | 0.25 | 3.0 |" in md
     assert "† context only" in md and "aniposelib is not installed" in md
     for png in ("heldout_error.png", "bone_cv.png"):
         assert (out / png).stat().st_size > 10_000
+
+
+def test_report_names_a_smoothed_run_apart(report):
+    assert report._tracker_label("real_mixture", {}) == "real_mixture"
+    cfg = {"tracker": {"smoother": {"_target_": "torchmocap.filters.KalmanSmoother"}}}
+    assert report._tracker_label("real_mixture", cfg) == "real_mixture + KalmanSmoother"
+    assert report._tracker_label("p", {"tracker": {"smoother": None}}) == "p"
 
 
 def test_report_without_runs_says_the_torchmocap_rows_are_missing(report, no_anipose_result,
