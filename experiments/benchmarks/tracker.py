@@ -220,8 +220,8 @@ def real_frame(repeats: int, threads: int, peer_dir: Path, frame_dir: Path,
             best = min((1, 2), key=lambda n: wall[f"p{n}_{layers}"])
             for n, which in ((best, "its faster configuration"),
                              (threads, "the same number of threads")):
-                if n not in (1, 2):
-                    continue
+                if n not in (1, 2) or (n == best and which != "its faster configuration"):
+                    continue  # no second list when the same-threads one is the faster one
                 whole = wall[f"p{n}_{layers}"]
                 lines.append(f"\nratios PARSEC / ours (> 1: ours faster), wall medians, PARSEC "
                              f"with {which} ({n} thread{'s' * (n > 1)}):")
