@@ -34,6 +34,7 @@ from torchmocap.likelihoods.joints2d import (
     robust_cost,
 )
 from torchmocap.likelihoods.keypoints import KeypointLikelihood
+from torchmocap.likelihoods.keypoints_learned import LearnedKeypointLikelihood
 from torchmocap.likelihoods.learned import (
     ArchitectureMismatchError,
     LearnedLikelihood,
@@ -64,6 +65,7 @@ __all__ = [
     "Joints2DObservation",
     "KeypointLikelihood",
     "LearnedFeatureLikelihood",
+    "LearnedKeypointLikelihood",
     "LearnedLikelihood",
     "LearnedRenderLikelihood",
     "Likelihood",
