@@ -108,6 +108,8 @@ def _fit_scores(term, runtime, det, tracked, held, theta0, n_train: int, iterati
 
 def run(cfg: DictConfig, out: Path) -> dict:
     """Train as configured; returns the summary written to ``out/summary.json``."""
+    from hydra.utils import get_object
+
     from torchmocap.assembly import Runtime, build
     from torchmocap.cli.runs import load_sequence, write_json_atomic
     from torchmocap.data import split_heldout
@@ -128,6 +130,10 @@ def run(cfg: DictConfig, out: Path) -> dict:
     settings = KeypointTrainSettings(**OmegaConf.to_container(tr, resolve=True))
     settings.check()  # settings errors before any loading
     train_frame_count(cfg.train_frames, sys.maxsize)  # its type and range, before loading
+    target = get_object(str(cfg.term._target_))
+    if not (isinstance(target, type) and issubclass(target, LearnedKeypointLikelihood)):
+        raise ValueError(f"term: {cfg.term._target_} is not a LearnedKeypointLikelihood "
+                         "(term=keypoints_learned)")
     t0 = time.perf_counter()
     seq = load_sequence(cfg, min_frames=2)
     tracked, held = split_heldout(seq)
@@ -136,9 +142,6 @@ def run(cfg: DictConfig, out: Path) -> dict:
                          "the keypoint term on (keypoints.source)")
     runtime = Runtime.from_sequence(tracked)
     term = build(cfg.term, runtime, _path="term")
-    if not isinstance(term, LearnedKeypointLikelihood):
-        raise ValueError(f"term: {cfg.term._target_} is not a LearnedKeypointLikelihood "
-                         "(term=keypoints_learned)")
     hand = build(OmegaConf.merge(cfg.term, {"weights": None, "learn": False}), runtime,
                  _path="term")
     det = stack_detections(term, tracked)
