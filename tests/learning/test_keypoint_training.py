@@ -1,7 +1,8 @@
 """Self-supervised training of the keypoint term: on synthetic detections made with known
-offsets (several seeds) a few alternations recover them from the map's, with confidences that
-tell outliers the calibration learns to weight them less; training twice gives the same
-parameters; bad settings are named."""
+offsets (several seeds) a few alternations recover them from the map's; with confidences that
+tell outliers the calibration learns to weight them less; a camera's shifted detections give
+it that bias when biases are trained; training twice gives the same parameters; bad settings
+are named."""
 
 from __future__ import annotations
 
@@ -38,10 +39,11 @@ def _poses(sk, T, seed):
     return sk.clamp(th)
 
 
-def _recording(seed, T=12, outliers=0.0):
+def _recording(seed, T=12, outliers=0.0, shift=None):
     """Detections of ``T`` poses by 4 cameras, made with the map's offsets moved by MOVED
-    (0.5 px noise); with ``outliers`` that share of detections is replaced by random pixels
-    and given confidences below 0.4 (the right ones above 0.5)."""
+    (0.5 px noise); with ``shift = (camera, du, dv)`` that camera's shifted; with
+    ``outliers`` that share of detections is replaced by random pixels and given confidences
+    below 0.4 (the right ones above 0.5)."""
     sk = human31()
     rig = make_ring_rig(4, image_size=(640, 480)).float()
     kmap = load_keypoint_map("body_25b", sk)
@@ -53,6 +55,8 @@ def _recording(seed, T=12, outliers=0.0):
     pix = rig.project(keypoint_positions(kin.positions, kin.rotations, kmap, true))[0]
     g = torch.Generator().manual_seed(100 + seed)
     pix = pix + 0.5 * torch.randn(pix.shape, generator=g)
+    if shift is not None:  # a camera's detections shifted (pixels)
+        pix[:, shift[0]] += torch.tensor(shift[1:])
     conf = 0.5 + 0.5 * torch.rand(pix.shape[:-1], generator=g)
     if outliers:
         bad = torch.rand(pix.shape[:-1], generator=g) < outliers
@@ -107,6 +111,18 @@ def test_calibration_learns_that_low_confidences_are_outliers(seed):
     assert bool((w[1:] >= w[:-1]).all())
 
 
+def test_a_camera_bias_is_learned_only_when_asked():
+    """One camera's detections shifted by (8, -6) px: with bias_prior > 0 its learned bias is
+    that shift (the others' stay near 0); with the default 0 the biases stay 0."""
+    sk, rig, seq, th, true = _recording(3, shift=(2, 8.0, -6.0))
+    term, _ = _train(sk, rig, seq, th, bias_prior=0.02)
+    bias = term.pixel_bias.detach() * rig.image_size
+    assert float((bias[2] - torch.tensor([8.0, -6.0])).norm()) < 1.5, bias
+    assert float(bias[[0, 1, 3]].norm(dim=-1).max()) < 1.5, bias
+    fixed, _ = _train(sk, rig, seq, th)
+    assert float(fixed.pixel_bias.detach().abs().max()) == 0.0
+
+
 def test_training_is_reproducible():
     sk, rig, seq, th, true = _recording(5, T=6)
     a, _ = _train(sk, rig, seq, th, rounds=2)
@@ -116,6 +132,7 @@ def test_training_is_reproducible():
 
 
 @pytest.mark.parametrize("kw,match", [({"rounds": 0}, "training.rounds"),
+                                      ({"bias_prior": -0.1}, "training.bias_prior"),
                                       ({"pose_iterations": 1.5}, "training.pose_iterations"),
                                       ({"offset_prior_m": 0.0}, "training.offset_prior_m"),
                                       ({"scale_prior": float("nan")}, "training.scale_prior")])

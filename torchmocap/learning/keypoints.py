@@ -67,10 +67,13 @@ class KeypointTrainSettings:
             keypoint map's.
         scale_prior: std of the per-keypoint log scale factors around 0.
         bias_prior: std of each camera's pixel bias around 0, as a fraction of the image's
-            width / height (0.01: 11 / 19 px on 1088x1920 images).
+            width / height (0.01: 11 / 19 px on 1088x1920 images); 0 (default) keeps the
+            biases as they are (measured on pose2sim_balancing: trained biases did not help the
+            held-out view, experiments/learned_real).
         joint: the parameter step moves the poses too (one L-BFGS on both): faster along the
             directions where an offset and a joint angle explain the detections almost alike;
-            False keeps the poses of the last pose step (plain alternation).
+            False (default) keeps the poses of the last pose step (plain alternation; the
+            better held-out scores on pose2sim_balancing).
     """
 
     rounds: int = 4
@@ -78,8 +81,8 @@ class KeypointTrainSettings:
     parameter_iterations: int = 50
     offset_prior_m: float = 0.02
     scale_prior: float = 0.5
-    bias_prior: float = 0.01
-    joint: bool = True
+    bias_prior: float = 0.0
+    joint: bool = False
 
     def check(self) -> None:
         """Raises ValueError naming the first bad setting."""
@@ -89,9 +92,11 @@ class KeypointTrainSettings:
                 raise ValueError(f"training.{k}: expected an integer >= 1, got {v!r}")
         for k in ("offset_prior_m", "scale_prior", "bias_prior"):
             v = getattr(self, k)
+            low = 0 if k == "bias_prior" else None
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (
-                    math.isfinite(v) and v > 0):
-                raise ValueError(f"training.{k}: expected a number > 0, got {v!r}")
+                    math.isfinite(v) and (v > 0 or v == low)):
+                raise ValueError(f"training.{k}: expected a number > 0"
+                                 f"{' (or 0)' if low == 0 else ''}, got {v!r}")
         if not isinstance(self.joint, bool):
             raise ValueError(f"training.joint: expected true or false, got {self.joint!r}")
 
@@ -198,13 +203,16 @@ def _whitened(term, settings: KeypointTrainSettings) -> list[torch.Tensor]:
     with torch.no_grad():
         return [(term.offsets - term.base_offsets) / settings.offset_prior_m,
                 term.log_scale_px.clone(), term.log_keypoint_scale / settings.scale_prior,
-                term.calibration.clone(), term.pixel_bias / settings.bias_prior]
+                term.calibration.clone(),
+                term.pixel_bias / settings.bias_prior if settings.bias_prior else
+                term.pixel_bias.clone()]
 
 
 def _values(term, u: list[torch.Tensor], settings: KeypointTrainSettings) -> dict:
     return {"offsets": term.base_offsets.to(u[0]) + settings.offset_prior_m * u[0],
             "log_scale_px": u[1], "log_keypoint_scale": settings.scale_prior * u[2],
-            "calibration": u[3], "pixel_bias": settings.bias_prior * u[4]}
+            "calibration": u[3],
+            "pixel_bias": settings.bias_prior * u[4] if settings.bias_prior else u[4]}
 
 
 def fit_parameters(term, skeleton, theta: torch.Tensor, det: Detections,
@@ -216,14 +224,17 @@ def fit_parameters(term, skeleton, theta: torch.Tensor, det: Detections,
     the final negative log-likelihood per detection and the poses ``(T, D)``."""
     from torchmocap.skeleton import keypoint_positions
 
-    u = [x.requires_grad_(True) for x in _whitened(term, settings)]
+    u = _whitened(term, settings)
+    free = u if settings.bias_prior else u[:4]  # bias_prior 0: the biases stay
+    for x in free:
+        x.requires_grad_(True)
     sk = skeleton
     theta = theta.detach().to(skeleton.offsets.dtype).clone().requires_grad_(settings.joint)
     with torch.no_grad():
         fixed = None if settings.joint else Poses(theta, sk).kinematics
     rig = term.rig
     n = max(det.num_valid, 1)
-    opt = torch.optim.LBFGS(u + ([theta] if settings.joint else []), lr=1.0,
+    opt = torch.optim.LBFGS(free + ([theta] if settings.joint else []), lr=1.0,
                             max_iter=settings.parameter_iterations, history_size=20,
                             line_search_fn="strong_wolfe")
 
@@ -237,7 +248,9 @@ def fit_parameters(term, skeleton, theta: torch.Tensor, det: Detections,
 
     def closure():
         opt.zero_grad()
-        loss = (nll() + 0.5 * sum((x * x).sum() for i, x in enumerate(u) if i in (0, 2, 4))) / n
+        prior = sum((x * x).sum() for x in (u[0], u[2])) \
+            + ((u[4] * u[4]).sum() if settings.bias_prior else 0.0)
+        loss = (nll() + 0.5 * prior) / n
         loss.backward()
         return loss
 
