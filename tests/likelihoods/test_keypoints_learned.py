@@ -156,6 +156,20 @@ class TestLearnedKeypointLikelihood:
         with pytest.raises(FileNotFoundError, match="weights: no such file"):
             LearnedKeypointLikelihood(rig, sk, weights=str(tmp_path / "none.pt"))
 
+    def test_bundled_weights_load(self, scene):
+        """The shipped pose2sim_balancing parameters load by name onto that recording's
+        cameras (any subset) and change the map's offsets by a few centimetres at most."""
+        sk, rig, th, det = scene
+        named = make_ring_rig(3, image_size=(640, 480))
+        named.names = ["cam01", "cam03", "cam04"]
+        term = LearnedKeypointLikelihood(named, sk, weights="bundled")
+        change = (term.offsets - term.base_offsets).norm(dim=-1)
+        assert 0.005 < float(change.max()) < 0.06
+        assert term.weights_path.endswith("keypoints_pose2sim_balancing.pt")
+        w = term.calibrated(torch.linspace(0, 1, 21))
+        assert bool((w[1:] >= w[:-1]).all()) and not torch.equal(term.scale_px,
+                                                                  torch.full((3,), 8.0))
+
     def test_bad_settings_are_named(self, scene):
         sk, rig, th, det = scene
         for kw, msg in ((dict(calibration_knots=0), "calibration_knots"),
