@@ -50,6 +50,7 @@ from torchmocap.likelihoods.keypoints_learned import (
     keypoint_scales,
     monotone_calibration,
 )
+from torchmocap.skeleton.keypoints import keypoint_positions
 
 __all__ = ["Detections", "KeypointTrainSettings", "detection_nll", "fit_parameters",
            "fit_poses", "stack_detections", "track_poses", "train_keypoint_term"]
@@ -145,8 +146,6 @@ def stack_detections(term, seq) -> Detections:
 
 
 def _project(term, positions: torch.Tensor, rotations: torch.Tensor) -> torch.Tensor:
-    from torchmocap.skeleton import keypoint_positions
-
     return term.project(keypoint_positions(positions, rotations, term.kmap, term.offsets))
 
 
@@ -222,16 +221,13 @@ def fit_parameters(term, skeleton, theta: torch.Tensor, det: Detections,
     (module docstring), per valid detection — with ``settings.joint`` the poses too (then
     clamped into the skeleton's limits) —, then the calibration alone under the rest. Returns
     the final negative log-likelihood per detection and the poses ``(T, D)``."""
-    from torchmocap.skeleton import keypoint_positions
-
     u = _whitened(term, settings)
     free = u if settings.bias_prior else u[:4]  # bias_prior 0: the biases stay
     for x in free:
         x.requires_grad_(True)
-    sk = skeleton
     theta = theta.detach().to(skeleton.offsets.dtype).clone().requires_grad_(settings.joint)
     with torch.no_grad():
-        fixed = None if settings.joint else Poses(theta, sk).kinematics
+        fixed = None if settings.joint else Poses(theta, skeleton).kinematics
     rig = term.rig
     n = max(det.num_valid, 1)
     opt = torch.optim.LBFGS(free + ([theta] if settings.joint else []), lr=1.0,
@@ -240,7 +236,7 @@ def fit_parameters(term, skeleton, theta: torch.Tensor, det: Detections,
 
     def nll():
         v = _values(term, u, settings)
-        kin = fixed if fixed is not None else Poses(theta, sk).kinematics
+        kin = fixed if fixed is not None else Poses(theta, skeleton).kinematics
         x = keypoint_positions(kin.positions, kin.rotations, term.kmap, v["offsets"])
         return detection_nll(expected_pixels(rig, x, v["pixel_bias"]), det,
                              keypoint_scales(v["log_scale_px"], v["log_keypoint_scale"]),
@@ -259,7 +255,7 @@ def fit_parameters(term, skeleton, theta: torch.Tensor, det: Detections,
     # problem its few, strongly coupled parameters converge slowly
     with torch.no_grad():
         v = _values(term, u, settings)
-        kin = fixed if fixed is not None else Poses(theta, sk).kinematics
+        kin = fixed if fixed is not None else Poses(theta, skeleton).kinematics
         pix = expected_pixels(rig, keypoint_positions(kin.positions, kin.rotations, term.kmap,
                                                       v["offsets"]), v["pixel_bias"])
         scales = keypoint_scales(v["log_scale_px"], v["log_keypoint_scale"])
