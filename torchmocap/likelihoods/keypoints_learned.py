@@ -114,10 +114,12 @@ def expected_pixels(rig, x: torch.Tensor, pixel_bias: torch.Tensor) -> torch.Ten
 class LearnedKeypointLikelihood(KeypointLikelihood):
     """The keypoint energy with trainable offsets, scales and confidence calibration.
 
+    ``rig``, ``skeleton``, ``keypoint_names``, ``keypoint_map``, ``scale_px``, ``robust``,
+    ``min_confidence``, ``reduction`` and ``on_empty`` are those of
+    :class:`~torchmocap.likelihoods.KeypointLikelihood` (the map's offsets and ``scale_px`` are
+    the starting point).
+
     Args:
-        rig, skeleton, keypoint_names, keypoint_map, scale_px, robust, min_confidence,
-            reduction, on_empty: as :class:`~torchmocap.likelihoods.KeypointLikelihood` (the
-            map's offsets and ``scale_px`` are the starting point).
         calibration_knots: ``B``, the calibration's segments on ``[0, 1]``.
         weights: a weights file (:meth:`save_weights`, ``torchmocap-train
             --config-name train_keypoints``), ``"bundled"`` (the parameters shipped for the
@@ -227,8 +229,8 @@ class LearnedKeypointLikelihood(KeypointLikelihood):
             ArchitectureMismatchError: another keypoint map or setting (names each).
 
         Warns:
-            UserWarning: cameras of the rig the file has no parameters for (named; they keep
-            the untrained values).
+            UserWarning: cameras of the rig the file has no parameters for (named; they
+                keep the untrained values).
         """
         payload = read_weights(path)
         name = type(self).__name__
