@@ -53,6 +53,7 @@ from torchmocap.likelihoods.silhouette import (
     silhouette_iou,
     soft_capsule_silhouettes,
 )
+from torchmocap.likelihoods.silhouette_noise import SilhouetteNoiseLikelihood, fit_noise_model
 
 __all__ = [
     "AppearanceLikelihood",
@@ -74,12 +75,14 @@ __all__ = [
     "Poses",
     "ROBUST_COSTS",
     "SilhouetteLikelihood",
+    "SilhouetteNoiseLikelihood",
     "SilhouetteObservation",
     "WeightedSum",
     "WeightsError",
     "appearance_energy",
     "body_surface_pattern",
     "check_energy",
+    "fit_noise_model",
     "joints2d_energy",
     "occlusion_energy",
     "predicted_hidden",
