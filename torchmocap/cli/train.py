@@ -7,6 +7,9 @@ and runs :class:`~torchmocap.learning.trainer.Trainer`. Outputs in the run direc
 ``resume=<file>``), ``weights.pt`` (the best network, weights only; ``export=<path>`` writes a
 copy, e.g. into ``torchmocap/assets/learned/``) and ``summary.json``.
 
+``--config-name train_keypoints`` trains the keypoint likelihood on a recording instead
+(:mod:`torchmocap.cli.train_keypoints`; the config's ``runner`` names that training).
+
 The default clips (``training_set: bundled``) are the packaged walk, so the command runs from
 any directory; ``training_set=mocap`` trains on the real HDM05 and CMU clips (from the
 repository root).
@@ -110,6 +113,12 @@ def run(cfg: DictConfig, out: Path) -> dict:
 @hydra.main(config_path="../conf", config_name="train", version_base="1.3")
 @hydra_task("torchmocap-train")
 def _hydra_main(cfg: DictConfig, out: Path) -> None:
+    if cfg.get("runner"):  # another training (e.g. --config-name train_keypoints)
+        from hydra.utils import get_method
+
+        s = get_method(str(cfg.runner))(cfg, out)
+        print(f"torchmocap-train: {s['report']}", file=sys.stderr)
+        return
     s = run(cfg, out)
     f = s["final"]
     print(f"torchmocap-train: {s['epochs']} epochs in {s['seconds_training']:.0f} s "

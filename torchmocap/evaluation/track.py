@@ -3,6 +3,7 @@ writes into ``metrics.json`` and ``track.npz`` besides the run's settings)."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -27,7 +28,7 @@ from torchmocap.evaluation.views import reprojection_error, silhouette_agreement
 from torchmocap.evaluation.warnings import EvaluationWarning
 from torchmocap.likelihoods.silhouette import check_fit_iou
 
-__all__ = ["TrackEvaluation", "evaluate_track"]
+__all__ = ["TrackEvaluation", "evaluate_track", "tracked_keypoint_map"]
 
 #: sequence meta entries reported beside the scores (a recording's hull top, subject scale and
 #: subject fit)
@@ -48,6 +49,19 @@ class TrackEvaluation:
 
     metrics: dict[str, Any] = field(default_factory=dict)
     arrays: dict[str, Any] = field(default_factory=dict)
+
+
+def tracked_keypoint_map(tracker):
+    """The keypoint map of the tracker's keypoint term with its current offsets
+    (:meth:`~torchmocap.likelihoods.KeypointLikelihood.fitted_map`: a learned term's differ from
+    the subject's map), or None when its likelihood has no keypoint term."""
+    from torchmocap.likelihoods import KeypointLikelihood
+
+    likelihood = getattr(tracker, "likelihood", None)
+    if not isinstance(likelihood, torch.nn.Module):
+        return None
+    terms = [m for m in likelihood.modules() if isinstance(m, KeypointLikelihood)]
+    return terms[0].fitted_map() if len(terms) == 1 else None
 
 
 def evaluate_track(seq, runtime, tracker, track, energy_vs_truth: bool = False,
@@ -83,11 +97,15 @@ def evaluate_track(seq, runtime, tracker, track, energy_vs_truth: bool = False,
         scores in each tracked view's detections (``tracked_views``: median px of the full-size
         images, PCK) and with ``heldout`` those in the held-out view (``heldout``:
         :meth:`~torchmocap.evaluation.HeldOutView.summary`, with the first pose held beside
-        and the keypoint mapping; ``track.npz`` gets ``heldout_errors_px (T, K')`` and
+        and the keypoint mapping — the keypoints are those of the tracker's keypoint term,
+        :func:`tracked_keypoint_map`; ``track.npz`` gets ``heldout_errors_px (T, K')`` and
         ``heldout_silhouette_iou (T,)``). Warnings:
         :class:`~torchmocap.evaluation.EvaluationWarning`.
     """
     sk = runtime.skeleton
+    kmap = tracked_keypoint_map(tracker)
+    if kmap is not None:  # the model points the tracker scored (a learned term's offsets)
+        runtime = dataclasses.replace(runtime, keypoint_map=kmap)
     metrics: dict[str, Any] = dict(summarize_diagnostics(track.infos))
     arrays: dict[str, Any] = {"theta": track.theta.numpy(), "dof_names": _dof_names(sk),
                               **hypothesis_arrays(track.infos, sk.num_dofs)}

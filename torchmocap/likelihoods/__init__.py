@@ -34,6 +34,7 @@ from torchmocap.likelihoods.joints2d import (
     robust_cost,
 )
 from torchmocap.likelihoods.keypoints import KeypointLikelihood
+from torchmocap.likelihoods.keypoints_learned import LearnedKeypointLikelihood
 from torchmocap.likelihoods.learned import (
     ArchitectureMismatchError,
     LearnedLikelihood,
@@ -52,6 +53,7 @@ from torchmocap.likelihoods.silhouette import (
     silhouette_iou,
     soft_capsule_silhouettes,
 )
+from torchmocap.likelihoods.silhouette_noise import SilhouetteNoiseLikelihood, fit_noise_model
 
 __all__ = [
     "AppearanceLikelihood",
@@ -64,6 +66,7 @@ __all__ = [
     "Joints2DObservation",
     "KeypointLikelihood",
     "LearnedFeatureLikelihood",
+    "LearnedKeypointLikelihood",
     "LearnedLikelihood",
     "LearnedRenderLikelihood",
     "Likelihood",
@@ -72,12 +75,14 @@ __all__ = [
     "Poses",
     "ROBUST_COSTS",
     "SilhouetteLikelihood",
+    "SilhouetteNoiseLikelihood",
     "SilhouetteObservation",
     "WeightedSum",
     "WeightsError",
     "appearance_energy",
     "body_surface_pattern",
     "check_energy",
+    "fit_noise_model",
     "joints2d_energy",
     "occlusion_energy",
     "predicted_hidden",

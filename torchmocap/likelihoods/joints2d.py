@@ -83,6 +83,7 @@ __all__ = [
     "occlusion_energy",
     "predicted_hidden",
     "robust_cost",
+    "weighted_robust_sum",
 ]
 
 #: Depth-order models of :class:`Joints2DLikelihood` (``occlusion``).
@@ -185,16 +186,33 @@ def joints2d_energy(positions: torch.Tensor, observation: Joints2DObservation, r
             + 0.0 * positions.sum((-1, -2))
     X = positions.index_select(-2, observation.joints.to(positions.device))
     pix = rig.project(X)[0]  # (P, C, J', 2)
-    r = pix - observation.uv.to(pix)
     if isinstance(scale_px, torch.Tensor):
         scale_px = scale_px.to(pix)[:, None]  # (C, 1): per camera
+    return weighted_robust_sum(pix, observation.uv, observation.weight, scale_px, robust) \
+        * _norm_factor(observation, reduction)
+
+
+def weighted_robust_sum(pix: torch.Tensor, uv: torch.Tensor, weight: torch.Tensor,
+                        scale_px: float | torch.Tensor, robust: str = "cauchy") -> torch.Tensor:
+    """``sum_cj w_cj rho(|pix_cj - uv_cj|^2 / s_cj^2)`` over the last two axes (cameras,
+    joints): the un-normalised sum of :func:`joints2d_energy`.
+
+    Args:
+        pix: ``(P, C, J, 2)`` projected model points (pixels).
+        uv: ``(..., C, J, 2)`` detected pixels, broadcast against ``pix``.
+        weight: ``(..., C, J)`` weights (0 = skipped: such a slot costs nothing, also where the
+            model point projects to an infinite pixel).
+        scale_px: ``s`` in pixels: a number or a tensor broadcast against ``(C, J)``.
+        robust: one of :data:`ROBUST_COSTS`.
+
+    Returns:
+        ``(P,)`` sums (differentiable in ``pix``, ``weight`` and a tensor ``scale_px``).
+    """
+    r = pix - uv.to(pix)
     z = (r * r).sum(-1) / (scale_px * scale_px)
     rho, _ = robust_cost(z, robust)
-    w = observation.weight.to(pix)
-    # a missed detection (weight 0) costs nothing, also where a pose projects its joint to an
-    # infinite pixel (behind a distorting lens: 0 * inf would be NaN)
-    return torch.where(w > 0, w * rho, torch.zeros_like(rho)).sum((-1, -2)) \
-        * _norm_factor(observation, reduction)
+    w = weight.to(pix)
+    return torch.where(w > 0, w * rho, torch.zeros_like(rho)).sum((-1, -2))
 
 
 def predicted_hidden(positions: torch.Tensor, joints: torch.Tensor, body, rig) -> torch.Tensor:

@@ -41,6 +41,7 @@ Example:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -174,6 +175,12 @@ class KeypointLikelihood(Likelihood):
         """``(P, K', 3)`` world positions of the mapped keypoints of ``poses``."""
         kin = poses.kinematics
         return keypoint_positions(kin.positions, kin.rotations, self.kmap, self.offsets)
+
+    def fitted_map(self) -> KeypointMap:
+        """The keypoint map with this term's current offsets (the model points it scores:
+        a held-out view is scored with the same points)."""
+        return dataclasses.replace(self.kmap, offsets=self.offsets.detach().to(
+            device="cpu", dtype=torch.float64).clone())
 
     def energy(self, poses: Poses, observation: Joints2DObservation) -> torch.Tensor:
         x = self.keypoints(poses)
