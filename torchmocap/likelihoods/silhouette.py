@@ -539,25 +539,50 @@ def render_capsule_silhouettes(body, rig, theta: torch.Tensor, chunk: int = 2000
                                ) -> torch.Tensor:
     """Exact capsule-model silhouettes ``(C, H, W)`` bool of one pose ``theta (D,)``.
 
-    Every pixel centre is tested against every projected capsule (the same stadium model the
-    likelihood uses), in chunks of pixels. Used for overlays, IoU reports and test oracles.
-    ``(H, W)`` is the largest camera's image size; a smaller view fills the top-left corner
-    (False beyond it), the layout of a sequence's silhouettes.
+    Every pixel centre inside the bounding box of a view's projected capsules is tested against
+    every capsule (the same stadium model the likelihood uses), in chunks of pixels; a pixel
+    outside that box is farther than every capsule's radius from its axis, so it is False
+    without a test. Used for overlays, IoU reports and test oracles. ``(H, W)`` is the largest
+    camera's image size; a smaller view fills the top-left corner (False beyond it), the layout
+    of a sequence's silhouettes.
     """
     st = _stadiums(body.endpoints(body.skeleton(theta[None])), body.radii, rig)
     sizes = rig.image_size.long().cpu()
     W, H = int(sizes[:, 0].max()), int(sizes[:, 1].max())
-    ys, xs = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
-    q = torch.stack([xs, ys], -1).reshape(-1, 2).to(st.ax.dtype)  # integer pixel centres
-    C = st.ax.shape[0]
-    out = torch.empty(C, H * W, dtype=torch.bool)
-    for a in range(0, H * W, chunk):
-        qq = q[a:a + chunk][None].expand(C, -1, -1)
-        out[:, a:a + chunk] = _coverage_margin(qq, st, smooth=False)[..., 0] > 0
-    out = out.reshape(C, H, W)
-    for c, (w, h) in enumerate(sizes.tolist()):
-        out[c, h:], out[c, :, w:] = False, False
+    out = torch.zeros(sizes.shape[0], H, W, dtype=torch.bool)
+    boxes = _stadium_boxes(st).cpu().tolist()  # (C, 4)
+    for c, ((w, h), (x0, y0, x1, y1)) in enumerate(zip(sizes.tolist(), boxes)):
+        if not all(math.isfinite(v) for v in (x0, y0, x1, y1)):
+            continue  # no capsule in front of this camera
+        x0, y0 = max(0, math.floor(x0)), max(0, math.floor(y0))
+        x1, y1 = min(w, math.ceil(x1) + 1), min(h, math.ceil(y1) + 1)
+        if x0 >= x1 or y0 >= y1:
+            continue
+        ys, xs = torch.meshgrid(torch.arange(y0, y1, device=st.ax.device),
+                                torch.arange(x0, x1, device=st.ax.device), indexing="ij")
+        q = torch.stack([xs, ys], -1).reshape(1, -1, 2).to(st.ax.dtype)  # pixel centres
+        view = _Stadiums(*(f[c:c + 1] for f in st))
+        inside = torch.empty(q.shape[1], dtype=torch.bool)
+        for a in range(0, q.shape[1], chunk):
+            margin = _coverage_margin(q[:, a:a + chunk], view, smooth=False)
+            inside[a:a + chunk] = (margin[0, :, 0] > 0).cpu()
+        out[c, y0:y1, x0:x1] = inside.view(y1 - y0, x1 - x0)
     return out
+
+
+def _stadium_boxes(st: _Stadiums) -> torch.Tensor:
+    """Per view the bounding box ``(C, 4)`` (x0, y0, x1, y1, pixels) of every stadium with a
+    positive radius (each stadium lies within the box of its two end discs); infinite where a
+    view has none."""
+    r = torch.maximum(st.r0, st.r1)
+    has = r > 0
+    bx, by = st.ax + st.dx, st.ay + st.dy
+    inf = torch.full((), float("inf"), dtype=st.ax.dtype, device=st.ax.device)
+    lo_x = torch.where(has, torch.minimum(st.ax, bx) - r, inf).flatten(1).amin(1)
+    lo_y = torch.where(has, torch.minimum(st.ay, by) - r, inf).flatten(1).amin(1)
+    hi_x = torch.where(has, torch.maximum(st.ax, bx) + r, -inf).flatten(1).amax(1)
+    hi_y = torch.where(has, torch.maximum(st.ay, by) + r, -inf).flatten(1).amax(1)
+    return torch.stack([lo_x, lo_y, hi_x, hi_y], 1)
 
 
 def soft_capsule_silhouettes(endpoints: torch.Tensor, radii: torch.Tensor, rig,
