@@ -398,7 +398,9 @@ def plot_bone_cv(peers: dict, tm: dict, path: Path) -> None:
     ax.set_ylabel("bone-length CV (%)")
     ax.grid(axis="y", alpha=0.3)
     fig.legend(*ax.get_legend_handles_labels(), loc="lower center", ncol=2, fontsize=8)
-    fig.tight_layout(rect=(0, 0.08 + 0.05 * math.ceil(len(methods) / 2), 1, 1))
+    # the legend's rows (about 0.2 inch each) and the rotated bone names below the axes
+    legend_in = 0.2 + 0.2 * math.ceil(len(methods) / 2)
+    fig.tight_layout(rect=(0, legend_in / fig.get_figheight(), 1, 1))
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100, format="png")
     plt.close(fig)
