@@ -315,3 +315,11 @@ def test_real_frame_through_the_assembled_components(tmp_path, shared_data):
     r = _console(["data=bodytrack", f"data.path={root}", "data.scale=0.5",
                   f"hydra.run.dir={tmp_path / 'run2'}"], tmp_path)
     assert r.returncode == 2 and "tracker=real_frame" in r.stderr
+
+
+def test_summary_names_layers_only_for_a_layered_inference(capsys):
+    from torchmocap.cli.outputs import _search_row
+
+    assert _search_row({"num_particles": 1, "layers": None}) == ("particles", "1")
+    assert _search_row({"num_particles": 200, "layers": 15}) == ("particles x layers",
+                                                                 "200 x 15")

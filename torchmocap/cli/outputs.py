@@ -159,7 +159,7 @@ def _recording_rows(m: dict) -> list[tuple[str, str]]:
                 f"{d['pck_05']:.3f}, @10% {d['pck_10']:.3f}{iou}")
 
     rows = [("tracker", m["tracker"]), ("frames", m["frames"]),
-            ("particles x layers", f"{m['num_particles']} x {m['layers']}"),
+            _search_row(m),
             ("seconds / frame", f"{m['seconds_per_frame']:.3f}")]
     h = m.get("heldout")
     if h:
@@ -177,6 +177,13 @@ def _recording_rows(m: dict) -> list[tuple[str, str]]:
     return rows
 
 
+def _search_row(m: dict) -> tuple[str, str]:
+    """The summary's particles (x annealing layers, for an inference that has layers)."""
+    if m.get("layers") is None:
+        return "particles", f"{m['num_particles']}"
+    return "particles x layers", f"{m['num_particles']} x {m['layers']}"
+
+
 def print_summary(m: dict) -> None:
     """The run's summary table on stdout: the errors against the truth, or the scores without
     it (held-out view, tracked views, consistency) when the run has them, else the metrics as
@@ -189,7 +196,7 @@ def print_summary(m: dict) -> None:
         return
     o = m["orientation_error_deg"]
     rows = [("tracker", m["tracker"]), ("scenario", m.get("scenario")), ("frames", m["frames"]),
-            ("particles x layers", f"{m['num_particles']} x {m['layers']}"),
+            _search_row(m),
             ("seconds / frame", f"{m['seconds_per_frame']:.3f}"),
             ("orientation error (deg)", f"{o['mean']:.2f} +- {o['std']:.2f}"),
             ("MPJPE (mm)", f"{m['mpjpe_mm']['mean']:.1f} +- {m['mpjpe_mm']['std']:.1f}")]
