@@ -36,7 +36,7 @@ MIN_CONFIDENCE = 0.3
 def main(argv: list[str] | None = None) -> int:
     from torchmocap.assembly import Runtime
     from torchmocap.data.recording import load_recording
-    from torchmocap.filters.tracking.tracker import initial_pose
+    from torchmocap.filters.tracking.tracker import start_pose
     from torchmocap.learning.keypoints import stack_detections, track_poses
     from torchmocap.likelihoods import LearnedKeypointLikelihood, Poses
 
@@ -50,8 +50,7 @@ def main(argv: list[str] | None = None) -> int:
         seq = load_recording(args.recording, scale=args.scale, masks="none")
     rt = Runtime.from_sequence(seq)
     sk = rt.skeleton
-    theta0 = initial_pose(seq)
-    theta0 = (theta0[0] if theta0.dim() == 2 else theta0).to(sk.offsets.dtype)
+    theta0 = start_pose(seq).to(sk.offsets.dtype)
 
     def term(s):
         return LearnedKeypointLikelihood(s.rig, sk, s.joint_names, rt.keypoint_map,

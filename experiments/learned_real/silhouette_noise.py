@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     from torchmocap.assembly import Runtime
     from torchmocap.data import split_heldout
     from torchmocap.data.recording import load_recording
-    from torchmocap.filters.tracking.tracker import initial_pose
+    from torchmocap.filters.tracking.tracker import start_pose
     from torchmocap.learning.keypoints import stack_detections, track_poses
     from torchmocap.likelihoods import (
         LearnedKeypointLikelihood,
@@ -60,8 +60,7 @@ def main(argv: list[str] | None = None) -> int:
         tracked, held = split_heldout(seq)
         rt = Runtime.from_sequence(tracked)
         sk = rt.skeleton
-        theta0 = initial_pose(tracked)
-        theta0 = (theta0[0] if theta0.dim() == 2 else theta0).to(sk.offsets.dtype)
+        theta0 = start_pose(tracked).to(sk.offsets.dtype)
         kp = LearnedKeypointLikelihood(tracked.rig, sk, tracked.joint_names, rt.keypoint_map,
                                        min_confidence=0.1)
         theta = track_poses(kp, sk, stack_detections(kp, tracked), theta0, 30)

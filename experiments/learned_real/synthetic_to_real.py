@@ -58,7 +58,7 @@ def _spearman(a: torch.Tensor, b: torch.Tensor) -> float:
 def main(argv: list[str] | None = None) -> int:
     from torchmocap.assembly import Runtime
     from torchmocap.data.recording import load_recording
-    from torchmocap.filters.tracking.tracker import initial_pose
+    from torchmocap.filters.tracking.tracker import start_pose
     from torchmocap.learning.keypoints import stack_detections, track_poses
     from torchmocap.likelihoods import FrameEnergy, LearnedKeypointLikelihood
 
@@ -75,8 +75,7 @@ def main(argv: list[str] | None = None) -> int:
                              mask_cache=str(args.mask_cache))
     rt = Runtime.from_sequence(seq)
     sk = rt.skeleton
-    theta0 = initial_pose(seq)
-    theta0 = (theta0[0] if theta0.dim() == 2 else theta0).to(sk.offsets.dtype)
+    theta0 = start_pose(seq).to(sk.offsets.dtype)
     kp = LearnedKeypointLikelihood(seq.rig, sk, seq.joint_names, rt.keypoint_map,
                                    min_confidence=0.1)
     ref = track_poses(kp, sk, stack_detections(kp, seq), theta0, 30)

@@ -113,7 +113,7 @@ def run(cfg: DictConfig, out: Path) -> dict:
     from torchmocap.assembly import Runtime, build
     from torchmocap.cli.runs import load_sequence, write_json_atomic
     from torchmocap.data import split_heldout
-    from torchmocap.filters.tracking.tracker import check_seed, initial_pose
+    from torchmocap.filters.tracking.tracker import check_seed, start_pose
     from torchmocap.learning.keypoints import (
         KeypointTrainSettings,
         stack_detections,
@@ -147,8 +147,7 @@ def run(cfg: DictConfig, out: Path) -> dict:
     det = stack_detections(term, tracked)
     T = det.uv.shape[0]
     n_train = train_frame_count(cfg.train_frames, T)
-    theta0 = initial_pose(tracked)
-    theta0 = (theta0[0] if theta0.dim() == 2 else theta0).to(runtime.skeleton.offsets.dtype)
+    theta0 = start_pose(tracked).to(runtime.skeleton.offsets.dtype)
     t_data = time.perf_counter() - t0
     torch.manual_seed(int(seed))
     progress = (lambda m: print(f"torchmocap-train: {m}", flush=True)) if cfg.progress else None

@@ -362,3 +362,18 @@ def test_frames_whose_imu_samples_are_all_dropped_have_no_evidence(walk):
         tr = _tracker(walk, preset, ["tracker.num_particles=10", "tracker.inference.layers=1"])
         track = tr.run(seq6, theta0=theta[0], progress=False)
         assert [i.no_evidence for i in track.infos][2:5] == [["orientation"]] * 3, preset
+
+
+def test_start_pose_is_the_truth_or_the_first_candidate():
+    from types import SimpleNamespace
+
+    from torchmocap.filters.tracking import start_pose
+
+    cands = torch.arange(6.0).view(2, 3)
+    seq = SimpleNamespace(ground_truth=None, meta={"initial_poses": cands})
+    assert torch.equal(start_pose(seq), cands[0])
+    seq = SimpleNamespace(ground_truth=None, meta={"initial_poses": cands[1]})
+    assert torch.equal(start_pose(seq), cands[1])
+    truth = SimpleNamespace(theta=torch.ones(4, 3) * torch.arange(4.0)[:, None])
+    seq = SimpleNamespace(ground_truth=truth, meta={"initial_poses": cands})
+    assert torch.equal(start_pose(seq), torch.zeros(3))

@@ -18,6 +18,7 @@ from torchmocap.filters.tracking.tracker import (
     MissingObservationError,
     Tracker,
     initial_pose,
+    start_pose,
 )
 
 __all__ = [
@@ -37,6 +38,7 @@ __all__ = [
     "Tracker",
     "WeightedMeanEstimator",
     "initial_pose",
+    "start_pose",
     "predict_ar3",
     "track_groups",
     "track_seeds",

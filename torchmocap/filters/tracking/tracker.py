@@ -588,3 +588,10 @@ def initial_pose(sequence) -> torch.Tensor:
         raise ValueError("theta0: required when the sequence has neither ground truth nor "
                          "meta['initial_poses']")
     return torch.as_tensor(init, dtype=torch.float32)
+
+
+def start_pose(sequence) -> torch.Tensor:
+    """One pose ``(D,)`` to start a fit from: :func:`initial_pose`, its first candidate when
+    there are several."""
+    theta = initial_pose(sequence)
+    return theta[0] if theta.dim() == 2 else theta
