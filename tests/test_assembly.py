@@ -67,13 +67,13 @@ def test_every_tracker_preset_builds(runtime, option):
 def test_every_data_option_composes_and_the_default_builds(tmp_path):
     assert _options("data") == ["bodytrack", "default", "recording"]
     assert _options("data/clip") == ["bundled"]
-    from torchmocap.cli.runs import load_sequence
+    from torchmocap.assembly import load_sequence
 
     cfg = _compose(["data.clip.frames=2", "data.scenario=clean", "seed=1",
                     "+data.scenario_overrides.image_size=[80,60]"])
     seq = load_sequence(cfg)
     assert seq.num_frames == 2 and seq.silhouettes.shape[-2:] == (60, 80)
-    assert seq.meta["seed"] == 1 and seq.meta["clip"]["start"] == 0.0
+    assert seq.meta.seed == 1 and seq.meta.clip["start"] == 0.0
     bt = _compose(["data=bodytrack"]).data
     assert bt._target_.endswith("load_bodytrack_sequence") and bt.headings == 12
 

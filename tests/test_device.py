@@ -21,7 +21,7 @@ import torch
 from torch.overrides import TorchFunctionMode
 
 from torchmocap.assembly import Runtime, build_tracker, tracker_config
-from torchmocap.data.loaders import synthesized_sequence
+from torchmocap.data.synthetic.clips import synthesized_sequence
 
 #: preset, scenario, overrides — every inference kind and the main proposals and likelihoods
 PRESETS = [

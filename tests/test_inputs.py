@@ -32,7 +32,7 @@ def test_feature_amc_notes_the_asf_found_beside_it(tmp_path, shared_data):
 
 
 def test_feature_scenario_base_chain_is_noted(tmp_path):
-    from torchmocap.data import load_scenario
+    from torchmocap.data.synthetic import load_scenario
 
     (tmp_path / "base.yaml").write_text("base: studio\nfps: 20\n")
     (tmp_path / "child.yaml").write_text(f"base: {tmp_path / 'base.yaml'}\nimage_size: [80, 60]\n")

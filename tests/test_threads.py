@@ -146,7 +146,7 @@ class TestGovernor:
 def test_tracker_run_callbacks():
     """Tracker.run calls its callbacks after every frame (where the governor hooks in)."""
     from torchmocap.assembly import Runtime, build_tracker, tracker_config
-    from torchmocap.data.loaders import synthesized_sequence
+    from torchmocap.data.synthetic.clips import synthesized_sequence
 
     seq = synthesized_sequence({"frames": 3}, "clean", {"image_size": [80, 60]}, seed=0)
     tr = build_tracker(tracker_config("g", ["tracker.num_particles=8",

@@ -1,4 +1,5 @@
-"""Assembling components from configs: runtime dependencies, ``build`` and the tracker presets.
+"""Assembling a run from configs: the sequence (:func:`load_sequence`), the runtime dependencies,
+``build`` and the tracker presets (:func:`tracker_config`, :func:`build_tracker`).
 
 Every component config has a ``_target_`` (a class, function or classmethod, from torchmocap or
 any importable package). :func:`build` instantiates a config tree bottom-up with
@@ -12,7 +13,7 @@ passes the **runtime dependencies** a constructor asks for by parameter name:
 ``manifold``        the :class:`~torchmocap.ik.SensorManifold` of the tracking IMUs (None without)
 ``depth_camera``    the one-camera rig of the depth points (None without depth)
 ``keypoint_names``  the column names of the sequence's 2D detections (``joint_names``)
-``keypoint_map``    the subject's keypoint map fitted to the recording (``meta["keypoint_map"]``,
+``keypoint_map``    the subject's keypoint map fitted to the recording (``meta.keypoint_map``,
                     the map's YAML schema as a dict), else the detections' format name
 ==================  ===============================================================================
 
@@ -25,9 +26,13 @@ So a user's class enters a tracker through YAML alone::
 and ``tracker.likelihood.terms.mine`` of that config builds ``MyTerm(body=<runtime body>,
 rig=<runtime rig>, width=3.0)``. Dependencies are never looked up globally.
 
-:func:`tracker_config` composes a packaged preset (``conf/tracker/<name>.yaml``) with Hydra's
-compose API — the same config ``torchmocap-track tracker=<name> <overrides>`` resolves — and
-:func:`build_tracker` builds it for a sequence.
+:func:`load_sequence` builds the ``data`` node of a run's config (a data source with
+``_target_``: a synthesised clip, a recording, ...) into a :class:`~torchmocap.data.Sequence`,
+noting the files it reads and caching it (``sequence_cache``); :func:`tracker_config` composes a
+packaged preset (``conf/tracker/<name>.yaml``) with Hydra's compose API — the same config
+``torchmocap-track tracker=<name> <overrides>`` resolves — and :func:`build_tracker` builds it
+for the sequence's :class:`Runtime`. The command lines and the experiments assemble their runs
+with these functions.
 
 Example:
     >>> from torchmocap.assembly import tracker_config
@@ -38,9 +43,13 @@ Example:
 
 from __future__ import annotations
 
+import hashlib
 import inspect
+import json
+import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -51,6 +60,8 @@ __all__ = [
     "Runtime",
     "build",
     "build_tracker",
+    "load_sequence",
+    "sequence_cache_dir",
     "tracker_config",
 ]
 
@@ -86,27 +97,27 @@ class Runtime:
     def from_sequence(cls, sequence, skeleton=None, dtype: torch.dtype = torch.float32
                       ) -> Runtime:
         """Dependencies for tracking ``sequence``: the subject's skeleton (``skeleton``, else
-        the ground truth's, else ``sequence.meta["subject_skeleton"]``), its capsule body, the
+        the ground truth's, else ``sequence.meta.subject_skeleton``), its capsule body, the
         rig, the sensor manifold of the tracking IMUs, the names of the 2D detections'
         columns (``sequence.joint_names``) and their keypoint map (the subject's fitted map
-        ``sequence.meta["keypoint_map"]``, else the format's name ``meta["keypoint_format"]``;
+        ``sequence.meta.keypoint_map``, else the format's name ``meta.keypoint_format``;
         a dict or a string: config values, which ``hydra.utils.instantiate`` passes unchanged
         where it would turn a dataclass into a config)."""
         from torchmocap.body import CapsuleBody
         from torchmocap.ik import SensorManifold
         from torchmocap.skeleton import Skeleton
 
+        meta = sequence.meta
         if skeleton is None:
             if sequence.ground_truth is not None:
                 skeleton = sequence.ground_truth.build_skeleton()
-            elif isinstance(sequence.meta, dict) and "subject_skeleton" in sequence.meta:
-                skeleton = Skeleton.from_dict(sequence.meta["subject_skeleton"])
+            elif meta.subject_skeleton is not None:
+                skeleton = Skeleton.from_dict(meta.subject_skeleton)
             else:
-                why = (sequence.meta.get("subject_fit") or {}).get("skipped") \
-                    if isinstance(sequence.meta, dict) else None
+                why = (meta.subject_fit or {}).get("skipped")
                 raise ValueError("skeleton: required when the sequence has neither ground truth "
-                                 "nor meta['subject_skeleton']" + (f" (no subject fit: {why})"
-                                                                    if why else ""))
+                                 "nor meta.subject_skeleton" + (f" (no subject fit: {why})"
+                                                                if why else ""))
         skeleton = skeleton.to(dtype)
         sensors: dict[str, str] = {}
         if sequence.imu is not None:
@@ -117,10 +128,9 @@ class Runtime:
         depth_camera = None if sequence.depth is None else sequence.depth.camera.to(dtype)
         keypoint_names = (list(sequence.joint_names) if sequence.joints2d is not None
                           and sequence.joint_names else None)
-        meta = sequence.meta if isinstance(sequence.meta, dict) else {}
         keypoint_map = None
         if keypoint_names is not None:
-            keypoint_map = meta.get("keypoint_map") or meta.get("keypoint_format")
+            keypoint_map = meta.keypoint_map or meta.keypoint_format
         return cls(skeleton=skeleton, body=CapsuleBody(skeleton).to(dtype), rig=rig,
                    manifold=manifold, sensors=sensors, depth_camera=depth_camera,
                    keypoint_names=keypoint_names, keypoint_map=keypoint_map)
@@ -251,3 +261,87 @@ def build_tracker(config, runtime: Runtime, seed: int = 0):
         raise ComponentError(f"tracker: _target_ built a {type(tracker).__name__}, expected a "
                              "torchmocap.filters.Tracker")
     return tracker
+
+
+def sequence_cache_dir(cfg) -> Path | None:
+    """The ``sequence_cache`` directory (created when missing), or None when unset.
+
+    Raises:
+        NotADirectoryError: the setting names an existing file, or a directory that cannot be
+            created or written.
+    """
+    cache = cfg.get("sequence_cache")
+    if not cache:
+        return None
+    d = Path(str(cache)).expanduser()
+    if d.exists() and not d.is_dir():
+        raise NotADirectoryError(f"sequence_cache: {d} is a file; expected a directory (or "
+                                 "null: no cache)")
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise NotADirectoryError(f"sequence_cache: cannot create the directory {d} "
+                                 f"({e.strerror or e})") from None
+    if not os.access(d, os.W_OK | os.X_OK):
+        raise NotADirectoryError(f"sequence_cache: the directory {d} is not writable")
+    return d
+
+
+def load_sequence(cfg, min_frames: int = 2):
+    """Build the ``data`` node (a sequence source with ``_target_``; its ``seed`` defaults to
+    the run's, and ``evaluation.heldout_camera`` is passed to a source that holds one out),
+    noting every file it reads: ``meta.inputs`` holds their digests
+    (:mod:`torchmocap.inputs`).
+
+    With ``sequence_cache: <dir>`` in the config, the sequence is saved under
+    ``<dir>/<fingerprint of the data node, the code and the files it names>`` and read back by
+    later runs with the same data settings (e.g. every tracker and seed of a sweep) while the
+    input files it was built from are unchanged; otherwise it is rebuilt and replaced. A cache
+    entry that cannot be written is reported with a warning (the run goes on uncached)."""
+    import warnings
+
+    from hydra.utils import get_object
+    from omegaconf import OmegaConf
+
+    from torchmocap.inputs import changed_inputs, code_fingerprint, input_log, named_file_digests
+
+    extra = {}
+    fn = get_object(cfg.data._target_)
+    if "seed" not in cfg.data and _accepts(fn, "seed")[0]:
+        extra["seed"] = int(cfg.seed)
+    if _accepts(fn, "min_frames")[0]:
+        extra["min_frames"] = min_frames
+    held = (cfg.get("evaluation") or {}).get("heldout_camera")
+    if held is not None:
+        if not _accepts(fn, "heldout_camera")[0]:
+            raise ValueError(f"evaluation.heldout_camera: the data source {cfg.data._target_} "
+                             "cannot hold a camera out (a recording can: data=recording)")
+        extra["heldout_camera"] = held
+    cache = sequence_cache_dir(cfg)
+    key = None
+    if cache is not None:
+        from torchmocap.data import Sequence, SequenceFormatError
+
+        node = OmegaConf.to_container(cfg.data, resolve=True)
+        blob = json.dumps({"data": node, "extra": extra, "code": code_fingerprint(),
+                           "files": named_file_digests(node)}, sort_keys=True, default=str)
+        key = cache / hashlib.sha256(blob.encode()).hexdigest()[:16]
+        if (key / "manifest.json").is_file():
+            try:
+                seq = Sequence.load(key)
+            except (SequenceFormatError, OSError, ValueError):
+                seq = None  # unreadable: rebuild and replace it
+            inputs = None if seq is None else seq.meta.inputs
+            if isinstance(inputs, dict) and not changed_inputs(inputs):
+                return seq
+    with input_log() as log:
+        seq = build(cfg.data, None, _path="data", **extra)
+    seq.meta.inputs = log.digests()
+    if key is not None:
+        try:
+            seq.save(key, overwrite=True)
+        except OSError as e:
+            if not (key / "manifest.json").is_file():  # not another job's entry of the sweep
+                warnings.warn(f"sequence_cache: cannot write {key} ({e.strerror or e}); the "
+                              "sequence is not cached", stacklevel=2)
+    return seq

@@ -6,8 +6,8 @@ videos and images, masks, keypoint JSON) calls :func:`note_input` — or reads t
 :func:`read_text_input`, which notes it — and so does every search of a folder whose content
 decides what is read (the ``.asf`` files beside an AMC, a recording's folders). While an
 :func:`input_log` is open, the noted files are collected;
-:func:`torchmocap.cli.runs.load_sequence` opens one around a data source, stores the files'
-digests in ``Sequence.meta["inputs"]``, and a run, or a cached sequence, is up to date only
+:func:`torchmocap.assembly.load_sequence` opens one around a data source, stores the files'
+digests in ``Sequence.meta.inputs``, and a run, or a cached sequence, is up to date only
 while :func:`changed_inputs` finds none of them changed. Which files a source reads is
 thus what it actually read (the ASF found beside an AMC, a scenario's ``base:`` chain, every
 mask and keypoint file of a recording), not what a config names.
@@ -22,6 +22,7 @@ has the digest ``"-"`` (it appearing later is a change).
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import stat
@@ -30,8 +31,8 @@ from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path
 
-__all__ = ["InputLog", "changed_inputs", "file_digest", "input_log", "note_input",
-           "read_text_input", "yaml_error_line"]
+__all__ = ["InputLog", "changed_inputs", "code_fingerprint", "file_digest", "input_log",
+           "named_file_digests", "note_input", "read_text_input", "yaml_error_line"]
 
 _LOGS: ContextVar[tuple[InputLog, ...]] = ContextVar("torchmocap_input_logs", default=())
 _DIGESTS: dict[tuple[str, int, int, int], str] = {}
@@ -140,3 +141,39 @@ def yaml_error_line(e: Exception, position: bool = True) -> str:
     where = "" if mark is None or not position else \
         f"line {mark.line + 1}, column {mark.column + 1}: "
     return f"{where}{problem}" + (f" ({context})" if context else "")
+
+
+@functools.lru_cache(maxsize=1)
+def code_fingerprint() -> str:
+    """SHA-256 of the package's files — Python sources, packaged configs and bundled assets
+    (the default clip, body mesh and learned weights) — sorted by path."""
+    root = Path(__file__).resolve().parent
+    h = hashlib.sha256()
+    for p in sorted(root.rglob("*")):
+        if p.is_file() and "__pycache__" not in p.parts and p.suffix != ".pyc":
+            h.update(str(p.relative_to(root)).encode())
+            h.update(p.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def named_file_digests(node) -> dict[str, str]:
+    """Content hashes of the existing files a config node names (clips, scenario YAMLs,
+    weights): ``{string: digest}`` of every string value that is a file's path."""
+    from omegaconf import OmegaConf
+
+    out: dict[str, str] = {}
+
+    def visit(v):
+        if isinstance(v, dict):
+            for x in v.values():
+                visit(x)
+        elif isinstance(v, list):
+            for x in v:
+                visit(x)
+        elif isinstance(v, str) and len(v) < 4096:
+            p = Path(v).expanduser()
+            if p.is_file():
+                out[v] = hashlib.sha256(p.read_bytes()).hexdigest()[:16]
+
+    visit(OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node)
+    return out

@@ -41,7 +41,7 @@ EXE = str(Path(sys.executable).parent / "torchmocap-track")
 
 def in_process(Bs, args) -> list[str]:
     from torchmocap.assembly import Runtime, build_tracker, tracker_config
-    from torchmocap.data.loaders import synthesized_sequence
+    from torchmocap.data.synthetic.clips import synthesized_sequence
     from torchmocap.filters.tracking.batched import track_seeds
 
     size = [int(v) for v in args.image.split("x")]

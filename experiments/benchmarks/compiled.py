@@ -43,8 +43,8 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     from torchmocap.assembly import Runtime, build_tracker, tracker_config
-    from torchmocap.data import synthesize
-    from torchmocap.data.subject import fit_subject
+    from torchmocap.data.subjects.mocap import fit_subject
+    from torchmocap.data.synthetic import synthesize
     from torchmocap.evaluation.truth import track_errors
     from torchmocap.io import bundled_clip_path, load_motion
 

@@ -36,7 +36,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     from torchmocap.assembly import Runtime, build_tracker, tracker_config
-    from torchmocap.data.loaders import synthesized_sequence
+    from torchmocap.data.synthetic.clips import synthesized_sequence
 
     seq = synthesized_sequence({"name": "walk", "path": None, "start": 1.0,
                                 "frames": args.frames + 1, "in_place": True}, "stereo", {},

@@ -46,7 +46,7 @@ MM = 1e3
 
 def walk_poses() -> torch.Tensor:
     """Every frame of the bundled CMU 131_01 walk, fitted to human31 ``(T, 31)`` float64."""
-    from torchmocap.data.subject import fit_subject
+    from torchmocap.data.subjects.mocap import fit_subject
     from torchmocap.io import bundled_clip_path, load_motion
 
     return fit_subject(load_motion(bundled_clip_path())).theta.detach()

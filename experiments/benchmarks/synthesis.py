@@ -27,8 +27,8 @@ from pathlib import Path
 
 import torch
 
-from torchmocap.data import load_scenario, synthesize
-from torchmocap.data.subject import fit_subject
+from torchmocap.data.subjects.mocap import fit_subject
+from torchmocap.data.synthetic import load_scenario, synthesize
 from torchmocap.io import bundled_clip_path, load_motion
 
 SHARED_CLIP = Path(__file__).resolve().parents[3] / "shared" / "data" / "mocap" / "cmu" / \
@@ -62,9 +62,9 @@ def _peer(subject, images: int = 32) -> str:
     import numpy as np
     from PIL import Image, ImageDraw
 
-    from torchmocap.data import build_rig
-    from torchmocap.data.render import rasterize_mask
-    from torchmocap.data.synthesis import body_surface
+    from torchmocap.data.synthetic import build_rig
+    from torchmocap.data.synthetic.render import rasterize_mask
+    from torchmocap.data.synthetic.synthesis import body_surface
 
     rig = build_rig("ring4", [320, 240]).float()
     T = images // rig.num_cameras
@@ -119,7 +119,7 @@ def main() -> None:
             seq = synthesize(subject, sc, seed=r)
             wall, cpu = time.perf_counter() - w0, time.process_time() - c0
             if best is None or wall < best[0]:
-                best = (wall, cpu, seq.meta["timings"])
+                best = (wall, cpu, seq.meta.timings)
         save_s = float("nan")
         if not args.no_save:
             with tempfile.TemporaryDirectory() as d:

@@ -59,8 +59,8 @@ def measure(frames: int, compiled: bool = False) -> list[str]:
     """The benchmark rows (markdown) of this checkout; ``compiled`` adds the compiled variant
     (:data:`COMPILED`) of every row, its frames interleaved with the eager ones."""
     from torchmocap.assembly import Runtime, build_tracker, tracker_config
-    from torchmocap.data import synthesize
-    from torchmocap.data.subject import fit_subject
+    from torchmocap.data.subjects.mocap import fit_subject
+    from torchmocap.data.synthetic import synthesize
     from torchmocap.io import bundled_clip_path, load_motion
     from torchmocap.likelihoods import FrameEnergy
 
@@ -119,7 +119,7 @@ def _real_frame_anneal(root: Path, particles: int, layers: int, compiled: bool):
     images and masks) and prepares its silhouettes first. Starts: the zero pose at the subject's
     place plus 5 cm / 0.05 rad of Gaussian noise per DoF (seed 0); annealing seed 1."""
     from torchmocap.body import CapsuleBody
-    from torchmocap.data.bodytrack import load_bodytrack
+    from torchmocap.data.recordings.bodytrack import load_bodytrack
     from torchmocap.filters.optim.anneal import anneal, default_diffusion
     from torchmocap.likelihoods import FrameEnergy, SilhouetteLikelihood
     from torchmocap.skeleton import human31
@@ -256,8 +256,8 @@ def profile(frames: int, compiled: bool, frame_dir: Path) -> list[str]:
     import pstats
 
     from torchmocap.assembly import Runtime, build_tracker, tracker_config
-    from torchmocap.data import synthesize
-    from torchmocap.data.subject import fit_subject
+    from torchmocap.data.subjects.mocap import fit_subject
+    from torchmocap.data.synthetic import synthesize
     from torchmocap.filters import Tracker
     from torchmocap.io import bundled_clip_path, load_motion
 
@@ -311,8 +311,8 @@ def _worker(threads: int, frames: int, appearance: bool) -> None:
     cycle does the same work. Drives the pre-redesign API (``Tracker(body, rig,
     TrackerConfig)``) as well as the assembled one."""
     torch.set_num_threads(threads)
-    from torchmocap.data import synthesize
-    from torchmocap.data.subject import fit_subject
+    from torchmocap.data.subjects.mocap import fit_subject
+    from torchmocap.data.synthetic import synthesize
     from torchmocap.io import bundled_clip_path, load_motion
 
     clip = load_motion(bundled_clip_path()).resample(25).slice(0, frames + 1)

@@ -50,7 +50,7 @@ def child(args) -> None:
         governor = None
     threads0 = torch.get_num_threads()
     from torchmocap.assembly import Runtime, build_tracker, tracker_config
-    from torchmocap.data.loaders import synthesized_sequence
+    from torchmocap.data.synthetic.clips import synthesized_sequence
 
     size = [int(v) for v in args.image.split("x")]
     seq = synthesized_sequence({"frames": args.frames + 2}, "studio", {"image_size": size},

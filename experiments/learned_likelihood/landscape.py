@@ -30,7 +30,7 @@ def main() -> None:
     args = ap.parse_args()
 
     from torchmocap.assembly import Runtime, build_tracker, tracker_config
-    from torchmocap.data.loaders import synthesized_sequence
+    from torchmocap.data.synthetic.clips import synthesized_sequence
     from torchmocap.likelihoods import FrameEnergy
 
     clip = {"name": "walking", "path": "../shared/data/mocap/cmu/131_02.bvh", "fps": 25,

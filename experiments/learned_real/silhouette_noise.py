@@ -33,7 +33,7 @@ RECORDING = HERE.parents[2] / "shared" / "data" / "multiview" / "pose2sim_balanc
 def main(argv: list[str] | None = None) -> int:
     from torchmocap.assembly import Runtime
     from torchmocap.data import split_heldout
-    from torchmocap.data.recording import load_recording
+    from torchmocap.data.recordings.loader import load_recording
     from torchmocap.filters.tracking.tracker import start_pose
     from torchmocap.learning.keypoints import stack_detections, track_poses
     from torchmocap.likelihoods import (

@@ -57,7 +57,7 @@ def _spearman(a: torch.Tensor, b: torch.Tensor) -> float:
 
 def main(argv: list[str] | None = None) -> int:
     from torchmocap.assembly import Runtime
-    from torchmocap.data.recording import load_recording
+    from torchmocap.data.recordings.loader import load_recording
     from torchmocap.filters.tracking.tracker import start_pose
     from torchmocap.learning.keypoints import stack_detections, track_poses
     from torchmocap.likelihoods import FrameEnergy, LearnedKeypointLikelihood

@@ -27,7 +27,7 @@ from pathlib import Path
 import torch
 
 from torchmocap.cameras import CameraError, CameraRig, camera_key, read_calibration
-from torchmocap.data.recording_files import RecordingLayoutError, discover_recording
+from torchmocap.data.recordings.files import RecordingLayoutError, discover_recording
 from torchmocap.evaluation import ReprojectionScores, bone_length_cv, jitter, reprojection_scores
 from torchmocap.io.frames import FrameSourceError, numbered_files, open_frames
 from torchmocap.io.openpose import check_keypoint_format, keypoint_format, read_openpose_json

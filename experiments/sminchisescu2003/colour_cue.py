@@ -33,7 +33,7 @@ import torch
 
 from torchmocap.assembly import Runtime
 from torchmocap.body.capsules import rays_blocked_by_capsules
-from torchmocap.data.loaders import synthesized_sequence
+from torchmocap.data.synthetic.clips import synthesized_sequence
 from torchmocap.likelihoods.appearance import _per_bone, body_surface_pattern
 from torchmocap.proposals.jumps import limb_flips
 

@@ -75,7 +75,7 @@ RANDOM_ROWS = [("CSS", 1.0, "gaussian"), ("CSS", 4.0, "gaussian"), ("CSS", 8.0, 
 def real_pose(clip: Path, time_s: float, dtype=torch.float64):
     """The subject skeleton and its pose at ``time_s`` of a motion clip, placed at the capture
     centre (root x, y = 0)."""
-    from torchmocap.data.subject import fit_subject
+    from torchmocap.data.subjects.mocap import fit_subject
     from torchmocap.io import load_motion
 
     m = load_motion(str(clip)).resample(25)
@@ -93,7 +93,7 @@ def median(x: torch.Tensor) -> float:
 
 def run(args) -> dict:
     from torchmocap.data import Frame
-    from torchmocap.data.scenario import build_rig
+    from torchmocap.data.synthetic.scenario import build_rig
     from torchmocap.distributions import hessian_to_covariance
     from torchmocap.filters.inference import distinct_minima, levenberg_marquardt
     from torchmocap.likelihoods import Joints2DLikelihood, Poses

@@ -32,7 +32,7 @@ def evaluate(run: Path, lags=LAGS) -> dict:
     """``{column: (mpjpe mm, orientation deg)}`` of one run: the filtered track and every lag."""
     from omegaconf import OmegaConf
 
-    from torchmocap.cli.runs import load_sequence
+    from torchmocap.assembly import load_sequence
     from torchmocap.evaluation import track_errors
     from torchmocap.filters import KalmanSmoother
 

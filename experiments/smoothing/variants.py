@@ -44,7 +44,7 @@ def moving_average(theta: torch.Tensor, weights=(1, 2, 3, 2, 1)) -> torch.Tensor
 def evaluate(run: Path) -> dict:
     from omegaconf import OmegaConf
 
-    from torchmocap.cli.runs import load_sequence
+    from torchmocap.assembly import load_sequence
     from torchmocap.filters import KalmanSmoother
 
     cfg = OmegaConf.load(run / ".hydra" / "config.yaml")

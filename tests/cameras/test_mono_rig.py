@@ -10,8 +10,8 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 from torchmocap.cameras import CameraRig
-from torchmocap.data import load_scenario
-from torchmocap.data.scenario import build_rig
+from torchmocap.data.synthetic import load_scenario
+from torchmocap.data.synthetic.scenario import build_rig
 
 CONF = Path(__file__).resolve().parents[2] / "torchmocap" / "conf"
 F64 = torch.float64

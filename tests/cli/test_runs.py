@@ -47,7 +47,7 @@ def test_a_changed_base_scenario_reruns_the_run(tmp_path):
 
 def test_the_sequence_cache_is_rebuilt_when_the_asf_beside_the_amc_changes(tmp_path,
                                                                            shared_data):
-    from torchmocap.cli.runs import load_sequence
+    from torchmocap.assembly import load_sequence
 
     for f in ("01.asf", "01_01.amc"):
         shutil.copy(shared_data / "mocap" / "cmu" / f, tmp_path / f)
@@ -56,14 +56,14 @@ def test_the_sequence_cache_is_rebuilt_when_the_asf_beside_the_amc_changes(tmp_p
                     f"sequence_cache={tmp_path / 'cache'}"])
     first = load_sequence(cfg)
     cached = load_sequence(cfg)
-    assert cached.meta["inputs"] == first.meta["inputs"]
+    assert cached.meta.inputs == first.meta.inputs
     assert cached.ground_truth.positions.equal(first.ground_truth.positions)
     asf = tmp_path / "01.asf"
     text = asf.read_text(encoding="latin-1")
     assert "length 0.45" in text
     asf.write_text(text.replace("length 0.45", "length 0.5"), encoding="latin-1")  # 10 % shorter
     rebuilt = load_sequence(cfg)
-    assert rebuilt.meta["inputs"][str(asf)] != first.meta["inputs"][str(asf)]
+    assert rebuilt.meta.inputs[str(asf)] != first.meta.inputs[str(asf)]
     a, b = (s.ground_truth.positions[0].double() for s in (first, rebuilt))
     ratio = (b[:, 2].max() - b[:, 2].min()) / (a[:, 2].max() - a[:, 2].min())
     assert ratio == pytest.approx(0.45 / 0.5, rel=1e-3)
@@ -74,7 +74,8 @@ def test_a_recording_run_is_stale_when_a_keypoint_file_or_folder_changes(tmp_pat
     """``completed_run`` takes the digests of the recorded inputs again: one edited keypoint
     file, or a mask folder added to the recording (``masks: auto`` would read it), makes the
     run stale."""
-    from torchmocap.cli.runs import completed_run, load_sequence, run_fingerprint
+    from torchmocap.assembly import load_sequence
+    from torchmocap.cli.runs import completed_run, run_fingerprint
 
     rec = tmp_path / "rec"
     shutil.copytree(shared_data / "multiview" / "pose2sim_balancing", rec,
@@ -83,7 +84,7 @@ def test_a_recording_run_is_stale_when_a_keypoint_file_or_folder_changes(tmp_pat
                     "data.cameras=[cam01,cam03]"])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # cam01's codec crop
-        inputs = load_sequence(cfg).meta["inputs"]
+        inputs = load_sequence(cfg).meta.inputs
     kp = rec / "pose-associated" / "cam03_json"
     assert {str(rec / "videos" / "cam01.mp4"), str(rec / "calibration" / "Calib.toml"),
             str(kp / "cam03.0001.json"), str(kp), str(rec)} <= set(inputs)

@@ -46,7 +46,7 @@ class TestSynthCli:
     ])
     def test_exception_seed_and_preview_frame(self, tmp_path, override, match):
         """``seed=1.5`` used to run seed 1; settings are checked, not coerced."""
-        from torchmocap.data.loaders import DataConfigError
+        from torchmocap.data.synthetic.clips import DataConfigError
 
         scen = tmp_path / "tiny.yaml"
         scen.write_text(SMALL_SCENARIO)
@@ -55,11 +55,11 @@ class TestSynthCli:
             run(cfg, tmp_path / "out")
 
     def test_default_clip_is_bundled(self):
-        from torchmocap.data.loaders import bundled_clip_path
+        from torchmocap.data.synthetic.clips import bundled_clip_path
 
         p = bundled_clip_path()
         assert p.name == "cmu_131_01_walk.bvh" and p.is_file()
-        assert _compose([]).data._target_ == "torchmocap.data.loaders.synthesized_sequence"
+        assert _compose([]).data._target_ == "torchmocap.data.synthetic.clips.synthesized_sequence"
 
     def test_run_in_process(self, tmp_path):
         scen = tmp_path / "tiny.yaml"
@@ -68,8 +68,8 @@ class TestSynthCli:
         info = run(cfg, tmp_path / "out")
         seq = Sequence.load(tmp_path / "out" / "sequence")
         assert info["frames"] == 3 and seq.num_frames == 3 and seq.scenario == "tiny"
-        assert seq.silhouettes.shape == (3, 4, 60, 80) and seq.meta["seed"] == 2
-        assert seq.meta["clip"]["path"].endswith("cmu_131_01_walk.bvh")
+        assert seq.silhouettes.shape == (3, 4, 60, 80) and seq.meta.seed == 2
+        assert seq.meta.clip["path"].endswith("cmu_131_01_walk.bvh")
         from PIL import Image
 
         with Image.open(tmp_path / "out" / "preview.png") as im:

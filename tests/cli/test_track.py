@@ -45,7 +45,7 @@ def test_defaults():
 
 def test_every_clip_setting_is_in_the_default_config():
     """A documented ``data.clip`` key the config lacks cannot be set without ``+``."""
-    from torchmocap.data.loaders import CLIP_KEYS
+    from torchmocap.data.synthetic.clips import CLIP_KEYS
 
     assert set(_compose([]).data.clip) == CLIP_KEYS
     assert _compose(["data.clip.in_place=true"]).data.clip.in_place is True
@@ -99,7 +99,7 @@ def test_run_reports_the_do_nothing_baseline_and_beats_it(tmp_path):
     m = run(cfg, tmp_path)
     held = m["hold_first_pose"]
     z = np.load(tmp_path / "track.npz")
-    from torchmocap.cli.runs import load_sequence
+    from torchmocap.assembly import load_sequence
 
     sk = human31()  # bone rotations do not depend on the subject's bone lengths
     vb = [sk.joint_index(b) for b in m["validation_bones"]]
@@ -147,7 +147,7 @@ def test_smoothed_run_reports_the_filtered_errors_beside(tmp_path):
     import numpy as np
     import torch
 
-    from torchmocap.cli.runs import load_sequence
+    from torchmocap.assembly import load_sequence
 
     cfg = _compose(["tracker=kjs", "+smoother@tracker.smoother=viterbi", "data.clip.frames=5",
                     "tracker.num_particles=24", "tracker.inference.components=3",

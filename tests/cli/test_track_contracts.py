@@ -140,7 +140,7 @@ def test_bad_settings_are_user_errors_before_any_loading(tmp_path, monkeypatch, 
 def test_asf_with_a_bvh_clip_is_refused(tmp_path, monkeypatch, shared_data):
     """``data.clip.asf`` is the skeleton of an AMC; with a BVH clip it was silently ignored."""
     from torchmocap.cli.track import run
-    from torchmocap.data.loaders import DataConfigError
+    from torchmocap.data.synthetic.clips import DataConfigError
 
     shutil.copy(shared_data / "mocap" / "cmu" / "01.asf", tmp_path / "01.asf")
     monkeypatch.chdir(tmp_path)
@@ -217,7 +217,7 @@ def test_warnings_are_one_line_each_and_recorded(tmp_path, capsys):
 
     from torchmocap.cli.outputs import print_summary
     from torchmocap.cli.track import run
-    from torchmocap.data.loaders import bundled_clip_path
+    from torchmocap.data.synthetic.clips import bundled_clip_path
 
     text = re.sub(r"(OFFSET )([^\n]*)", lambda m: m.group(1) + " ".join(
         repr(float(v) * 0.7) for v in m.group(2).split()), bundled_clip_path().read_text())

@@ -81,8 +81,7 @@ def test_overlays_video_and_glb(tmp_path, fmt):
     # the GLB: the skinned body, keyframes at the frame times, the root at the estimate's
     import torch
 
-    from torchmocap.assembly import Runtime
-    from torchmocap.cli.runs import load_sequence
+    from torchmocap.assembly import Runtime, load_sequence
     from torchmocap.export import read_accessor, read_glb
 
     doc, blob = read_glb(tmp_path / "track.glb")

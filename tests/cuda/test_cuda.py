@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from torchmocap.assembly import Runtime, build_tracker, tracker_config
-from torchmocap.data.loaders import synthesized_sequence
+from torchmocap.data.synthetic.clips import synthesized_sequence
 
 pytestmark = [pytest.mark.cuda,
               pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU")]

@@ -8,14 +8,9 @@ import json
 import pytest
 import torch
 
-from torchmocap.data import (
-    MissingModalityError,
-    Sequence,
-    SequenceFormatError,
-    load_scenario,
-    synthesize,
-)
-from torchmocap.data.subject import fit_subject
+from torchmocap.data import MissingModalityError, Sequence, SequenceFormatError
+from torchmocap.data.subjects.mocap import fit_subject
+from torchmocap.data.synthetic import load_scenario, synthesize
 from torchmocap.io import bundled_clip_path, load_motion
 
 
@@ -66,7 +61,7 @@ class TestSequence:
         assert sub.imu is seq.imu and sub.ground_truth is seq.ground_truth
         named = dataclasses.replace(seq, meta={"cameras": ["a", "b", "c", "d"], "x": [1]})
         other = named.select_cameras([3])
-        assert other.meta == {"cameras": ["d"], "x": [1]} and named.meta["cameras"][0] == "a"
+        assert other.meta.to_dict() == {"cameras": ["d"], "x": [1]} and named.meta.cameras[0] == "a"
         # views smaller than the array: cropped to the largest selected one
         rig = seq.rig
         small = CameraRig(rig.K, rig.R, rig.t, [[80, 60], [70, 50], [80, 60], [70, 50]],
@@ -89,7 +84,7 @@ class TestSequence:
 
         names = list(seq.rig.names)
         assert split_heldout(seq) == (seq, None)
-        held = dataclasses.replace(seq, meta={**seq.meta, "heldout_camera": names[1]})
+        held = dataclasses.replace(seq, meta={**seq.meta.to_dict(), "heldout_camera": names[1]})
         tracked, view = split_heldout(held)
         assert tracked.rig.names == [names[0], *names[2:]] and view.rig.names == [names[1]]
         assert torch.equal(view.images, seq.images[:, 1:2])
@@ -126,7 +121,7 @@ class TestSequence:
         sk = g.build_skeleton()
         assert torch.allclose(sk.offsets, h.build_skeleton().offsets)
         assert torch.equal(sk.lower, h.build_skeleton().lower)  # ±inf limits survive JSON
-        assert back.meta["seed"] == 11 and back.meta["scenario"]["name"] == "outdoor"
+        assert back.meta.seed == 11 and back.meta.scenario["name"] == "outdoor"
         # loading through the manifest path works too
         assert Sequence.load(out / "manifest.json").num_frames == 3
 

@@ -12,7 +12,7 @@ import torch
 from PIL import Image
 
 from torchmocap.assembly import Runtime
-from torchmocap.data.bodytrack import load_bodytrack_sequence
+from torchmocap.data.recordings.bodytrack import load_bodytrack_sequence
 from torchmocap.evaluation import EvaluationWarning, evaluate_track
 from torchmocap.filters import FrameInfo, Track
 
@@ -22,7 +22,7 @@ def _scored(root):
         warnings.simplefilter("ignore")  # the loader's own warnings
         seq = load_bodytrack_sequence(root, scale=0.5)
     rt = Runtime.from_sequence(seq)
-    theta = torch.as_tensor(seq.meta["initial_poses"][:1], dtype=torch.float32)
+    theta = torch.as_tensor(seq.meta.initial_poses[:1], dtype=torch.float32)
     return seq, rt, Track(theta=theta, infos=[FrameInfo(0, initial=True)], seconds_per_frame=0.0)
 
 

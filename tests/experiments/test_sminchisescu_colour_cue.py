@@ -9,7 +9,7 @@ import torch
 @pytest.fixture(scope="module")
 def probe_setup(load_script):
     from torchmocap.assembly import Runtime
-    from torchmocap.data.loaders import synthesized_sequence
+    from torchmocap.data.synthetic.clips import synthesized_sequence
     from torchmocap.likelihoods.appearance import body_surface_pattern
 
     cc = load_script("sminchisescu2003/colour_cue.py")

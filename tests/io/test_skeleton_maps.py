@@ -141,7 +141,7 @@ def test_guess_unseen_families(tmp_path, convention, end_length):
     """A 22-joint skeleton of no built-in family, named by a common convention, maps onto
     human31 by its names alone; its mapped joints are human31's (the skeleton has human31's
     geometry and motion) and the subject fit reproduces them."""
-    from torchmocap.data.subject import fit_subject
+    from torchmocap.data.subjects.mocap import fit_subject
 
     path = write_unseen_family_bvh(tmp_path / f"{convention}.bvh", convention,
                                    end_length=end_length)

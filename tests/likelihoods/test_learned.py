@@ -210,7 +210,7 @@ class TestSoftRender:
 
 def test_render_term_on_the_real_bodytrack_frame(shared_data):
     from torchmocap.assembly import Runtime
-    from torchmocap.data.bodytrack import load_bodytrack_sequence
+    from torchmocap.data.recordings.bodytrack import load_bodytrack_sequence
 
     root = shared_data / "multiview" / "bodytrack_sequenceB_1"
     seq = load_bodytrack_sequence(root, scale=0.5, headings=4)
@@ -218,7 +218,7 @@ def test_render_term_on_the_real_bodytrack_frame(shared_data):
     term = LearnedRenderLikelihood(rt.body, rt.rig, size=(40, 30))
     obs = term.prepare(seq.frame(0))
     assert obs.observed.shape == (4, 30, 40) and float(obs.observed.max()) > 0
-    cand = torch.as_tensor(seq.meta["initial_poses"], dtype=torch.float32)
+    cand = torch.as_tensor(seq.meta.initial_poses, dtype=torch.float32)
     v = term.energy(Poses(cand, rt.skeleton), obs)
     assert v.shape == (cand.shape[0],) and bool(torch.isfinite(v).all())
 

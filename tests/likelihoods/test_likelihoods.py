@@ -316,8 +316,8 @@ def test_capsule_model_matches_the_rasterised_capsule_body():
     """The likelihood's stadium model and the synthesis rasteriser share the pixel convention
     (pixel x covers [x - 0.5, x + 0.5)): observations rendered from the tracker's own capsule
     body agree with its stadium silhouettes (a half-pixel shift drops the IoU to ~0.89)."""
-    from torchmocap.data import load_scenario, synthesize
-    from torchmocap.data.subject import fit_subject
+    from torchmocap.data.subjects.mocap import fit_subject
+    from torchmocap.data.synthetic import load_scenario, synthesize
     from torchmocap.io import bundled_clip_path, load_motion
     from torchmocap.likelihoods.silhouette import render_capsule_silhouettes, silhouette_iou
 
@@ -574,8 +574,8 @@ def test_self_occlusion_handling_lowers_the_true_pose_energy():
     chest): a surface point hidden in a view reads the arm there, so without occlusion handling
     the true pose pays a colour variance; ``rays`` and ``outlier`` remove a large part of it and
     every mode still prefers the true pose to a perturbed one."""
-    from torchmocap.data.render import rasterize_zbuffer
-    from torchmocap.data.synthesis import body_surface
+    from torchmocap.data.synthetic.render import rasterize_zbuffer
+    from torchmocap.data.synthetic.synthesis import body_surface
 
     sk = human31()
     body = CapsuleBody(sk)

@@ -3,7 +3,8 @@ appearance term without grazing views.
 
 The observations are rendered by a different model than the one under test: the masks and
 colour images below come from the z-buffered triangle mesh of the capsules
-(:func:`torchmocap.data.render.capsule_mesh`), the energies read projected stadiums and surface
+(:func:`torchmocap.data.synthetic.render.capsule_mesh`), the energies read projected stadiums
+and surface
 points.
 """
 
@@ -19,7 +20,7 @@ import torch
 from torchmocap.body import CapsuleBody
 from torchmocap.cameras import make_ring_rig
 from torchmocap.data import Frame
-from torchmocap.data.render import capsule_mesh, rasterize_zbuffer
+from torchmocap.data.synthetic.render import capsule_mesh, rasterize_zbuffer
 from torchmocap.likelihoods import Poses
 from torchmocap.likelihoods.appearance import (
     AppearanceLikelihood,

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import torch
 
+from torchmocap.data.recordings.keypoints.openpose import OpenPoseJson
 from torchmocap.likelihoods import Likelihood
 from torchmocap.proposals import GaussianDiffusionProposal
 
@@ -37,3 +38,21 @@ class HalfStepProposal(GaussianDiffusionProposal):
         std = torch.full((skeleton.num_dofs,), 0.5 * rotation_std_deg * 3.141592653589793 / 180)
         std[list(skeleton.translation_dofs)] = 0.01
         super().__init__(std, skeleton.num_dofs, skeleton.lower, skeleton.upper)
+
+
+class ShiftedOpenPose(OpenPoseJson):
+    """A keypoint source of a user's (``data.keypoints.source=<its YAML>``): the recording's
+    OpenPose detections moved by ``shift`` pixels (u and v) — a stand-in for a detector."""
+
+    def __init__(self, shift: float = 0.0, folder: str = "auto") -> None:
+        super().__init__(folder)
+        self.shift = float(shift)
+
+    def read(self, request):
+        det = super().read(request)
+        for frame in det.people:
+            for x in frame:
+                seen = x[..., 2] > 0
+                x[..., :2] += torch.where(seen[..., None], self.shift, 0.0)
+        det.report["shift"] = self.shift
+        return det

@@ -35,8 +35,8 @@ from torchmocap.cli.runs import (
     completed_run,
     config_fingerprint,
     run_fingerprint,
-    write_json_atomic,
 )
+from torchmocap.io.atomic import write_json_atomic
 
 __all__ = ["batch_fingerprint", "batch_seeds", "run_batch"]
 
@@ -74,7 +74,8 @@ def batch_fingerprint(cfg: DictConfig, seed: int) -> str:
 
 def _sequence_key(cfg) -> str:
     """What decides a run's sequence: its resolved data node and, when the node names no seed
-    of its own and its source takes one, the run's seed (as :func:`load_sequence` passes it)."""
+    of its own and its source takes one, the run's seed (as
+    :func:`~torchmocap.assembly.load_sequence` passes it)."""
     import json
 
     from hydra.utils import get_object
@@ -114,10 +115,10 @@ def run_batch(cfg: DictConfig, out: Path) -> dict:
     """Track every seed of ``cfg.batch_seeds`` in one process (see the module docstring);
     returns (and writes to ``out/batch.json``) the seeds, their run directories and, where
     known, each one's mean orientation error; every seed's metrics are in its directory."""
-    from torchmocap.assembly import Runtime, build_tracker
+    from torchmocap.assembly import Runtime, build_tracker, load_sequence
     from torchmocap.cli.jobs import finish, thread_policy, validate_tracker
     from torchmocap.cli.outputs import print_summary, validate_outputs
-    from torchmocap.cli.runs import load_sequence, reported_warnings
+    from torchmocap.cli.runs import reported_warnings
     from torchmocap.data import split_heldout
     from torchmocap.filters.tracking.batched import BatchGroup, track_groups
 
@@ -171,7 +172,7 @@ def run_batch(cfg: DictConfig, out: Path) -> dict:
             so.mkdir(parents=True, exist_ok=True)
             _write_hydra_records(so, cs, s)
             tracker.seed = s  # the seed of this track (metrics, checkpoints)
-            inputs = seq.meta["inputs"]
+            inputs = seq.meta.inputs
             runs[s] = finish(cs, so, seq, runtime, tracker, track, run_fingerprint(fp, inputs),
                              {"threads": governor.summary(), "batch": batch, "inputs": inputs,
                               "warnings": warned})

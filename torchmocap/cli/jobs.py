@@ -9,7 +9,8 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from torchmocap.cli.runs import is_multirun, write_json_atomic
+from torchmocap.cli.runs import is_multirun
+from torchmocap.io.atomic import write_json_atomic
 
 __all__ = ["finish", "thread_policy", "validate_tracker"]
 
@@ -70,7 +71,7 @@ def finish(cfg, out: Path, seq, runtime, tracker, track, fingerprint: str,
         "layers": getattr(tracker.inference, "layers", None),
         "scenario": seq.scenario,
         "seed": int(cfg.seed),
-        "clip": seq.meta.get("clip", {}),
+        "clip": seq.meta.clip or {},
         "fingerprint": fingerprint,
     }
     tracked, heldout = split_heldout(seq)

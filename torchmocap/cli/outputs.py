@@ -112,7 +112,7 @@ def _write_overlays(out, seq, runtime, theta, cfg) -> None:
                                                 "no video written")
         return
     T = int(theta.shape[0])
-    held = seq.meta.get("heldout_camera") if isinstance(seq.meta, dict) else None
+    held = seq.meta.heldout_camera
     labels = None if held is None else [f"{c} (held out)" if c == held else c
                                         for c in seq.rig.names]
     kw = dict(rig=seq.rig.to(runtime.rig.K.dtype), body=runtime.body, labels=labels,

@@ -1,5 +1,5 @@
-"""What the Hydra commands share: sequences from the ``data`` node, run fingerprints, atomic
-JSON, failure records and the sweep status.
+"""What the Hydra commands share: run fingerprints, failure records and the sweep status (the
+sequence of the ``data`` node is built by :func:`torchmocap.assembly.load_sequence`).
 
 * A run's **fingerprint** hashes its resolved config (without ``progress``), the package's code,
   configs and bundled assets, the content of every file the ``data`` and ``tracker`` nodes name,
@@ -24,7 +24,6 @@ import hashlib
 import json
 import os
 import sys
-import tempfile
 import time
 import traceback
 from collections.abc import Iterator
@@ -34,6 +33,9 @@ from typing import Any
 
 from hydra.experimental.callback import Callback
 
+from torchmocap.inputs import code_fingerprint, named_file_digests
+from torchmocap.io.atomic import write_json_atomic
+
 __all__ = [
     "USER_ERRORS",
     "RunLockError",
@@ -41,51 +43,20 @@ __all__ = [
     "acquire_lock",
     "check_added_settings",
     "release_lock",
-    "code_fingerprint",
     "completed_run",
     "config_fingerprint",
     "console_main",
     "hydra_task",
     "is_multirun",
-    "load_sequence",
     "read_json",
     "reported_warnings",
     "run_fingerprint",
-    "sequence_cache_dir",
     "write_failure",
-    "write_json_atomic",
 ]
 
 FAILURE_FILE = "failure.json"
 LOCK_FILE = ".torchmocap.lock"
 _failures: list[str] = []  # this process's sweep failures (filled by SweepStatus)
-
-
-def write_json_atomic(obj: Any, path: Path) -> None:
-    """Write JSON to ``path`` through a temporary file and a rename (mode 0644)."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(obj, f, indent=2, allow_nan=False, default=_json_default)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def _json_default(x):
-    import math
-
-    import torch
-
-    if isinstance(x, torch.Tensor):
-        x = x.tolist()
-        return x
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    raise TypeError(f"not JSON serialisable: {type(x).__name__}")
 
 
 def read_json(path: Path) -> Any | None:
@@ -94,42 +65,6 @@ def read_json(path: Path) -> Any | None:
         return json.loads(Path(path).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return None
-
-
-@functools.lru_cache(maxsize=1)
-def code_fingerprint() -> str:
-    """SHA-256 of the package's files — Python sources, packaged configs and bundled assets
-    (the default clip, body mesh and learned weights) — sorted by path."""
-    root = Path(__file__).resolve().parents[1]
-    h = hashlib.sha256()
-    for p in sorted(root.rglob("*")):
-        if p.is_file() and "__pycache__" not in p.parts and p.suffix != ".pyc":
-            h.update(str(p.relative_to(root)).encode())
-            h.update(p.read_bytes())
-    return h.hexdigest()[:16]
-
-
-def _file_hashes(node) -> dict[str, str]:
-    """Content hashes of the existing files a config node names (clips, scenario YAMLs,
-    weights)."""
-    from omegaconf import OmegaConf
-
-    out: dict[str, str] = {}
-
-    def visit(v):
-        if isinstance(v, dict):
-            for x in v.values():
-                visit(x)
-        elif isinstance(v, list):
-            for x in v:
-                visit(x)
-        elif isinstance(v, str) and len(v) < 4096:
-            p = Path(v).expanduser()
-            if p.is_file():
-                out[v] = hashlib.sha256(p.read_bytes()).hexdigest()[:16]
-
-    visit(OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node)
-    return out
 
 
 def config_fingerprint(cfg, exclude: tuple[str, ...] = ("progress", "threads")) -> str:
@@ -143,7 +78,7 @@ def config_fingerprint(cfg, exclude: tuple[str, ...] = ("progress", "threads")) 
     c = OmegaConf.to_container(cfg, resolve=True)
     for k in exclude + ("hydra",):
         c.pop(k, None)
-    named = {k: _file_hashes(c.get(k, {})) for k in ("data", "tracker")}
+    named = {k: named_file_digests(c.get(k, {})) for k in ("data", "tracker")}
     blob = json.dumps({"config": c, "code": code_fingerprint(), "files": named},
                       sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
@@ -151,7 +86,7 @@ def config_fingerprint(cfg, exclude: tuple[str, ...] = ("progress", "threads")) 
 
 def run_fingerprint(settings: str, inputs: dict[str, str] | None) -> str:
     """The fingerprint of a run: its settings' fingerprint (:func:`config_fingerprint`) and
-    the digests of the input files its data source read (``Sequence.meta["inputs"]``)."""
+    the digests of the input files its data source read (``Sequence.meta.inputs``)."""
     blob = json.dumps({"settings": settings, "inputs": inputs or {}}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
@@ -167,91 +102,6 @@ def completed_run(out: Path, settings: str) -> dict | None:
         return None
     now = {p: file_digest(p) for p in done["inputs"]}
     return done if done.get("fingerprint") == run_fingerprint(settings, now) else None
-
-
-def sequence_cache_dir(cfg) -> Path | None:
-    """The ``sequence_cache`` directory (created when missing), or None when unset.
-
-    Raises:
-        NotADirectoryError: the setting names an existing file, or a directory that cannot be
-            created or written.
-    """
-    cache = cfg.get("sequence_cache")
-    if not cache:
-        return None
-    d = Path(str(cache)).expanduser()
-    if d.exists() and not d.is_dir():
-        raise NotADirectoryError(f"sequence_cache: {d} is a file; expected a directory (or "
-                                 "null: no cache)")
-    try:
-        d.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise NotADirectoryError(f"sequence_cache: cannot create the directory {d} "
-                                 f"({e.strerror or e})") from None
-    if not os.access(d, os.W_OK | os.X_OK):
-        raise NotADirectoryError(f"sequence_cache: the directory {d} is not writable")
-    return d
-
-
-def load_sequence(cfg, min_frames: int = 2):
-    """Build the ``data`` node (a sequence source with ``_target_``; its ``seed`` defaults to
-    the run's, and ``evaluation.heldout_camera`` is passed to a source that holds one out),
-    noting every file it reads: ``meta["inputs"]`` holds their digests
-    (:mod:`torchmocap.inputs`).
-
-    With ``sequence_cache: <dir>`` in the config, the sequence is saved under
-    ``<dir>/<fingerprint of the data node, the code and the files it names>`` and read back by
-    later runs with the same data settings (e.g. every tracker and seed of a sweep) while the
-    input files it was built from are unchanged; otherwise it is rebuilt and replaced. A cache
-    entry that cannot be written is reported with a warning (the run goes on uncached)."""
-    import warnings
-
-    from hydra.utils import get_object
-    from omegaconf import OmegaConf
-
-    from torchmocap.assembly import _accepts, build
-    from torchmocap.inputs import changed_inputs, input_log
-
-    extra = {}
-    fn = get_object(cfg.data._target_)
-    if "seed" not in cfg.data and _accepts(fn, "seed")[0]:
-        extra["seed"] = int(cfg.seed)
-    if _accepts(fn, "min_frames")[0]:
-        extra["min_frames"] = min_frames
-    held = (cfg.get("evaluation") or {}).get("heldout_camera")
-    if held is not None:
-        if not _accepts(fn, "heldout_camera")[0]:
-            raise ValueError(f"evaluation.heldout_camera: the data source {cfg.data._target_} "
-                             "cannot hold a camera out (a recording can: data=recording)")
-        extra["heldout_camera"] = held
-    cache = sequence_cache_dir(cfg)
-    key = None
-    if cache is not None:
-        from torchmocap.data import Sequence, SequenceFormatError
-
-        node = OmegaConf.to_container(cfg.data, resolve=True)
-        blob = json.dumps({"data": node, "extra": extra, "code": code_fingerprint(),
-                           "files": _file_hashes(node)}, sort_keys=True, default=str)
-        key = cache / hashlib.sha256(blob.encode()).hexdigest()[:16]
-        if (key / "manifest.json").is_file():
-            try:
-                seq = Sequence.load(key)
-            except (SequenceFormatError, OSError, ValueError):
-                seq = None  # unreadable: rebuild and replace it
-            inputs = None if seq is None else seq.meta.get("inputs")
-            if isinstance(inputs, dict) and not changed_inputs(inputs):
-                return seq
-    with input_log() as log:
-        seq = build(cfg.data, None, _path="data", **extra)
-    seq.meta["inputs"] = log.digests()
-    if key is not None:
-        try:
-            seq.save(key, overwrite=True)
-        except OSError as e:
-            if not (key / "manifest.json").is_file():  # not another job's entry of the sweep
-                warnings.warn(f"sequence_cache: cannot write {key} ({e.strerror or e}); the "
-                              "sequence is not cached", stacklevel=2)
-    return seq
 
 
 @contextmanager

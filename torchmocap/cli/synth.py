@@ -16,14 +16,15 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
-from torchmocap.cli.runs import console_main, hydra_task, load_sequence
+from torchmocap.assembly import load_sequence
+from torchmocap.cli.runs import console_main, hydra_task
 
 __all__ = ["main", "preview_image", "run"]
 
 
 def run(cfg: Any, out_dir: Path) -> dict[str, Any]:
     """Load the clip, fit the subject, synthesise, save ``out_dir/sequence`` and the preview."""
-    from torchmocap.data.loaders import DataConfigError, check_seed
+    from torchmocap.data.synthetic.clips import DataConfigError, check_seed
 
     check_seed(cfg.seed, "seed")  # 1.5 is an error, not seed 1
     t = cfg.get("preview_frame")

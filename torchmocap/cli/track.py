@@ -24,6 +24,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
+from torchmocap.assembly import load_sequence
 from torchmocap.cli.batch import run_batch
 from torchmocap.cli.jobs import finish, thread_policy, validate_tracker
 from torchmocap.cli.outputs import print_summary, validate_outputs
@@ -33,7 +34,6 @@ from torchmocap.cli.runs import (
     console_main,
     hydra_task,
     is_multirun,
-    load_sequence,
     reported_warnings,
     run_fingerprint,
 )
@@ -79,7 +79,7 @@ def run(cfg: DictConfig, out: Path) -> dict:
     check_checkpoint(ckpt, every)
     with reported_warnings("torchmocap-track") as warned:
         seq = load_sequence(cfg, min_frames=2)
-        inputs = seq.meta["inputs"]
+        inputs = seq.meta.inputs
         fingerprint = run_fingerprint(settings, inputs)
         tracked, _ = split_heldout(seq)  # the views the tracker sees (all but a held-out camera)
         runtime = Runtime.from_sequence(tracked)
@@ -87,7 +87,7 @@ def run(cfg: DictConfig, out: Path) -> dict:
             tracker = build_tracker(cfg.tracker, runtime, seed=cfg.seed)
             tracker.check_sequence(tracked)
         except ValueError as e:
-            hint = seq.meta.get("suggested_tracker")
+            hint = seq.meta.suggested_tracker
             if hint and cfg.tracker.get("name") != hint:
                 raise type(e)(f"{e} (this data is tracked with tracker={hint})") from e
             raise

@@ -110,10 +110,10 @@ def run(cfg: DictConfig, out: Path) -> dict:
     """Train as configured; returns the summary written to ``out/summary.json``."""
     from hydra.utils import get_object
 
-    from torchmocap.assembly import Runtime, build
-    from torchmocap.cli.runs import load_sequence, write_json_atomic
+    from torchmocap.assembly import Runtime, build, load_sequence
     from torchmocap.data import split_heldout
     from torchmocap.filters.tracking.tracker import check_seed, start_pose
+    from torchmocap.io.atomic import write_json_atomic
     from torchmocap.learning.keypoints import (
         KeypointTrainSettings,
         stack_detections,

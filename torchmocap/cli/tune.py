@@ -37,8 +37,8 @@ from torchmocap.cli.runs import (
     is_multirun,
     read_json,
     write_failure,
-    write_json_atomic,
 )
+from torchmocap.io.atomic import write_json_atomic
 
 __all__ = ["HeldOutReport", "evaluate_clips", "main"]
 

@@ -1,7 +1,7 @@
 """Leave one camera out of tracking, to score the track in it (REFERENCE §11).
 
 A recording loaded with a held-out camera (``load_recording(heldout_camera=...)``, the run
-setting ``evaluation.heldout_camera``) holds every view, and ``meta["heldout_camera"]`` names
+setting ``evaluation.heldout_camera``) holds every view, and ``meta.heldout_camera`` names
 the one left out of the other views' masks, the subject fit and the person selection.
 :func:`split_heldout` splits it into the sequence a tracker may see (the other views) and
 the held-out view (a one-camera sequence) that
@@ -22,9 +22,9 @@ __all__ = ["heldout_camera", "split_heldout"]
 
 
 def heldout_camera(seq) -> str | None:
-    """The name of the held-out camera of ``seq`` (``meta["heldout_camera"]``) when ``seq``'s
+    """The name of the held-out camera of ``seq`` (``meta.heldout_camera``) when ``seq``'s
     rig still holds it, else None."""
-    name = seq.meta.get("heldout_camera") if isinstance(seq.meta, dict) else None
+    name = seq.meta.heldout_camera
     if name is None or seq.rig is None or name not in seq.rig.names:
         return None
     return name

@@ -35,6 +35,7 @@ from torch import Tensor
 
 from torchmocap.data.depth import DepthData
 from torchmocap.data.imu import ImuData
+from torchmocap.data.metadata import SequenceMeta
 
 __all__ = [
     "MODALITIES",
@@ -164,7 +165,8 @@ class Sequence:
         joints2d: ``(T, C, J, 3)`` (u, v, confidence) of ``joint_names``.
         joint_names: names of the 2D joints.
         ground_truth: :class:`GroundTruth`.
-        meta: free-form JSON-serialisable information (seed, clip, scenario settings, timings).
+        meta: :class:`~torchmocap.data.SequenceMeta`: where the sequence came from and what
+            its source fitted (a dict given here becomes one, :meth:`SequenceMeta.from_dict`).
     """
 
     fps: float
@@ -178,7 +180,11 @@ class Sequence:
     joints2d: Tensor | None = None
     joint_names: list[str] = field(default_factory=list)
     ground_truth: GroundTruth | None = None
-    meta: dict[str, Any] = field(default_factory=dict)
+    meta: SequenceMeta = field(default_factory=SequenceMeta)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.meta, SequenceMeta):
+            self.meta = SequenceMeta.from_dict(self.meta)
 
     # ------------------------------------------------------------------ access
     @property
@@ -255,7 +261,7 @@ class Sequence:
         """The sequence seen by the cameras at ``indices`` only (in that order): the rig's
         subset and those views of the silhouettes, view flags, images and 2D joints (image
         arrays cropped to the largest selected view); the other modalities, the ground truth
-        and ``meta`` (a copy, ``meta["cameras"]`` the selected names when it lists cameras)
+        and ``meta`` (a copy, ``meta.cameras`` the selected names when it lists cameras)
         are shared.
 
         Raises:
@@ -281,8 +287,8 @@ class Sequence:
             return x[:, :, :H, :W] if image else x
 
         meta = copy.deepcopy(self.meta)
-        if isinstance(meta.get("cameras"), list) and len(meta["cameras"]) == C:
-            meta["cameras"] = [meta["cameras"][i] for i in idx]
+        if isinstance(meta.cameras, list) and len(meta.cameras) == C:
+            meta.cameras = [meta.cameras[i] for i in idx]
         return Sequence(fps=self.fps, scenario=self.scenario, rig=rig,
                         silhouettes=views(self.silhouettes, True),
                         view_dropped=views(self.view_dropped), images=views(self.images, True),
@@ -351,7 +357,7 @@ class Sequence:
                 if g.markers is not None:
                     arrays["gt_markers"] = g.markers.cpu().numpy()
                     man["ground_truth"]["marker_parts"] = list(g.marker_parts)
-            man["meta"] = _json_safe(self.meta)
+            man["meta"] = _json_safe(self.meta.to_dict())
             with open(tmp / "arrays.npz", "wb") as f:
                 np.savez_compressed(f, **arrays)
             with open(tmp / "manifest.json", "w") as f:
@@ -409,7 +415,7 @@ class Sequence:
 
         rig = rig_from_dict(man["rig"], source=str(mpath)) if "rig" in man else None
         seq = cls(fps=float(man["fps"]), scenario=str(man.get("scenario", "custom")), rig=rig,
-                  meta=_json_restore(man.get("meta", {})))
+                  meta=SequenceMeta.from_dict(_json_restore(man.get("meta", {}))))
         if "silhouettes" in man:
             s = man["silhouettes"]
             seq.silhouettes = _read_pngs(path / "masks", T, int(s["cameras"]), "1").bool()

@@ -237,7 +237,7 @@ def heldout_view_scores(seq, runtime, theta: torch.Tensor, camera: int | str = 0
 
     Args:
         seq: a :class:`~torchmocap.data.Sequence` holding the camera (its ``joints2d`` and
-            ``silhouettes``; pixels at ``seq.meta["scale"]``, default 1).
+            ``silhouettes``; pixels at ``seq.meta.scale``, default 1).
         runtime: the :class:`~torchmocap.assembly.Runtime` the track was made with (skeleton,
             body, keypoint names and map).
         theta: ``(T, D)`` the track.
@@ -302,7 +302,7 @@ def heldout_view_scores(seq, runtime, theta: torch.Tensor, camera: int | str = 0
             start = model(theta[0])
             iou_first = torch.stack([silhouette_iou(start, masks[t:t + 1])[0]
                                      for t in range(T)])
-    scale = seq.meta.get("scale", 1.0) if isinstance(seq.meta, dict) else 1.0
+    scale = 1.0 if seq.meta.scale is None else seq.meta.scale
     return HeldOutView(camera=names[camera], pixel_scale=float(scale), scores=scores,
                        hold_first_pose=first, silhouette_iou=iou, hold_first_iou=iou_first,
                        mapping=mapping, min_confidence=float(min_confidence))

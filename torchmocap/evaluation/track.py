@@ -171,8 +171,8 @@ def evaluate_track(seq, runtime, tracker, track, energy_vs_truth: bool = False,
         if view.silhouette_iou is not None:
             arrays["heldout_silhouette_iou"] = view.silhouette_iou.numpy()
     for k in META_KEYS:
-        if k in seq.meta:
-            metrics[k] = seq.meta[k]
+        if (v := getattr(seq.meta, k)) is not None:
+            metrics[k] = v
     return TrackEvaluation(metrics=metrics, arrays=arrays)
 
 

@@ -1,18 +1,23 @@
 """Atomic file writes: write to a temporary file beside the target, then ``os.replace``.
 
 A reader (or a crashed run) never sees a half-written file: either the old file or the complete
-new one is there. Used for images, videos and GLB files written into run directories.
+new one is there. Every file the package writes goes through :func:`atomic_path` (JSON through
+:func:`write_json_atomic`); whole directories (a saved sequence, a mask-cache entry) are
+written beside their target and renamed into place by their writers.
 """
 
 from __future__ import annotations
 
+import json
+import math
 import os
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
-__all__ = ["atomic_path"]
+__all__ = ["atomic_path", "write_json_atomic"]
 
 
 @contextmanager
@@ -40,3 +45,20 @@ def atomic_path(path: str | os.PathLike, mode: int = 0o644) -> Iterator[Path]:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def write_json_atomic(obj: Any, path: str | os.PathLike) -> None:
+    """Write ``obj`` as JSON (indented; tensors as lists, non-finite floats as null) to
+    ``path`` atomically (:func:`atomic_path`, mode 0644)."""
+    with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8") as f:
+        json.dump(obj, f, indent=2, allow_nan=False, default=_json_default)
+
+
+def _json_default(x):
+    import torch
+
+    if isinstance(x, torch.Tensor):
+        return x.tolist()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    raise TypeError(f"not JSON serialisable: {type(x).__name__}")

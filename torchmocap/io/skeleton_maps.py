@@ -572,7 +572,7 @@ def resolve_skeleton_map(
     return None if fam is None else load_skeleton_map(fam)
 
 
-_resolve = resolve_skeleton_map  # kept: torchmocap.data.subject imports this name
+_resolve = resolve_skeleton_map  # kept: torchmocap.data.subjects.mocap imports this name
 
 
 def unmapped_joints(clip, skeleton_map: str | Path | SkeletonMap | None = None) -> list[str]:

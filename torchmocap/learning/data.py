@@ -154,7 +154,7 @@ def build_clip_data(clip: Mapping[str, Any], scenario: str = "outdoor",
     ``cache_dir`` when given)."""
     from torchmocap.assembly import Runtime, build_tracker, tracker_config
     from torchmocap.data import Sequence as Seq
-    from torchmocap.data.loaders import synthesized_sequence
+    from torchmocap.data.synthetic.clips import synthesized_sequence
 
     neg = negatives or NegativeSettings()
     overrides = {"depth.enabled": False, "joints2d.enabled": False,

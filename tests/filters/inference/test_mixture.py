@@ -294,7 +294,7 @@ class TestMixtureInference:
 # ---------------------------------------------------------------------- the presets
 @pytest.fixture(scope="module")
 def walk_mono():
-    from torchmocap.data.loaders import synthesized_sequence
+    from torchmocap.data.synthetic.clips import synthesized_sequence
 
     seq = synthesized_sequence({"name": "walk", "path": None, "frames": 4}, "monocular",
                                {"silhouettes.enabled": False}, seed=0)

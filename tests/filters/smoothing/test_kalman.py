@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from torchmocap.assembly import Runtime, build_tracker, tracker_config
-from torchmocap.data.loaders import synthesized_sequence
+from torchmocap.data.synthetic.clips import synthesized_sequence
 from torchmocap.filters import FrameInfo, KalmanSmoother, Track
 from torchmocap.filters.smoothing import cv_kalman_smoother, fit_cv_noise, unwrap_angles
 

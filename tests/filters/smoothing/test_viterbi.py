@@ -194,7 +194,7 @@ def test_chain_settings_are_checked_and_named():
 
 @pytest.fixture(scope="module")
 def walk_mono():
-    from torchmocap.data.loaders import synthesized_sequence
+    from torchmocap.data.synthetic.clips import synthesized_sequence
 
     seq = synthesized_sequence({"name": "walk", "path": None, "frames": 5}, "monocular",
                                {"silhouettes.enabled": False}, seed=0)

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from torchmocap.assembly import Runtime, build_tracker, tracker_config
-from torchmocap.data.loaders import synthesized_sequence
+from torchmocap.data.synthetic.clips import synthesized_sequence
 from torchmocap.filters.tracking.batched import BatchGroup, Lockstep, track_groups, track_seeds
 from torchmocap.likelihoods.base import FrameEnergy
 

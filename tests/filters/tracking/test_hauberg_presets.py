@@ -14,7 +14,7 @@ FRAMES = 14
 
 @pytest.fixture(scope="module")
 def walk_stereo():
-    from torchmocap.data.loaders import synthesized_sequence
+    from torchmocap.data.synthetic.clips import synthesized_sequence
 
     # the bundled walk with its root held (the paper's subjects stand in place): the arms swing
     seq = synthesized_sequence({"name": "walk", "path": None, "start": 1.0, "frames": FRAMES,

@@ -12,7 +12,7 @@ import torch
 
 from torchmocap.assembly import Runtime, build_tracker, tracker_config
 from torchmocap.data import split_heldout
-from torchmocap.data.recording import load_recording
+from torchmocap.data.recordings.loader import load_recording
 from torchmocap.evaluation import heldout_view_scores
 
 #: small settings per preset (the presets' own are for the 100-frame clip)

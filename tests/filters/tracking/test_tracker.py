@@ -16,7 +16,7 @@ from torchmocap.assembly import Runtime, build_tracker, tracker_config
 from torchmocap.body import CapsuleBody
 from torchmocap.cameras import make_ring_rig
 from torchmocap.data import Frame, ImuData, Sequence
-from torchmocap.data.subject import fit_subject
+from torchmocap.data.subjects.mocap import fit_subject
 from torchmocap.filters import CheckpointError, MissingObservationError, Tracker
 from torchmocap.filters.optim.anneal import anneal
 from torchmocap.geometry import geodesic_angle, matrix_to_quaternion
@@ -367,13 +367,14 @@ def test_frames_whose_imu_samples_are_all_dropped_have_no_evidence(walk):
 def test_start_pose_is_the_truth_or_the_first_candidate():
     from types import SimpleNamespace
 
+    from torchmocap.data import SequenceMeta
     from torchmocap.filters.tracking import start_pose
 
     cands = torch.arange(6.0).view(2, 3)
-    seq = SimpleNamespace(ground_truth=None, meta={"initial_poses": cands})
+    seq = SimpleNamespace(ground_truth=None, meta=SequenceMeta(initial_poses=cands))
     assert torch.equal(start_pose(seq), cands[0])
-    seq = SimpleNamespace(ground_truth=None, meta={"initial_poses": cands[1]})
+    seq = SimpleNamespace(ground_truth=None, meta=SequenceMeta(initial_poses=cands[1]))
     assert torch.equal(start_pose(seq), cands[1])
     truth = SimpleNamespace(theta=torch.ones(4, 3) * torch.arange(4.0)[:, None])
-    seq = SimpleNamespace(ground_truth=truth, meta={"initial_poses": cands})
+    seq = SimpleNamespace(ground_truth=truth, meta=SequenceMeta(initial_poses=cands))
     assert torch.equal(start_pose(seq), torch.zeros(3))

@@ -459,7 +459,7 @@ class Tracker(nn.Module):
 
         Args:
             sequence: observations. The first pose is ``theta0``, else the ground truth of
-                frame 0, else ``sequence.meta["initial_poses"]`` (candidates refined on frame 0;
+                frame 0, else ``sequence.meta.initial_poses`` (candidates refined on frame 0;
                 a single one is the first pose of a tracker that does not refine it).
             progress: show a tqdm progress bar.
             checkpoint: file to save the state to every ``checkpoint_every`` frames; when it
@@ -515,7 +515,7 @@ class Tracker(nn.Module):
             if theta0.shape[0] != 1:
                 raise ValueError(
                     f"tracker {self.name!r}: the sequence offers {theta0.shape[0]} candidate "
-                    "first poses (meta['initial_poses']) and the tracker does not refine the "
+                    "first poses (meta.initial_poses) and the tracker does not refine the "
                     "first frame to choose one (refine_first_frame: true, e.g. "
                     "tracker=real_frame)")
             theta0 = theta0[0]
@@ -580,13 +580,13 @@ class Tracker(nn.Module):
 
 def initial_pose(sequence) -> torch.Tensor:
     """The first pose of a track: the ground truth of frame 0, else the candidate poses
-    ``(K, D)`` in ``sequence.meta["initial_poses"]`` (real recordings)."""
+    ``(K, D)`` in ``sequence.meta.initial_poses`` (real recordings)."""
     if sequence.ground_truth is not None:
         return sequence.ground_truth.theta[0]
-    init = sequence.meta.get("initial_poses") if isinstance(sequence.meta, dict) else None
+    init = sequence.meta.initial_poses
     if init is None:
         raise ValueError("theta0: required when the sequence has neither ground truth nor "
-                         "meta['initial_poses']")
+                         "meta.initial_poses")
     return torch.as_tensor(init, dtype=torch.float32)
 
 

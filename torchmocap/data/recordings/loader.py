@@ -1,0 +1,458 @@
+"""A real multi-view recording as a :class:`~torchmocap.data.Sequence`: :func:`load_recording`.
+
+The folder layout is that of :mod:`torchmocap.data.recordings.files` (calibration, a video or
+image folder per camera, optional OpenPose keypoints, masks and background plates); see
+``docs/recordings.md``. What the loader checks:
+
+* every chosen camera has a calibration entry (matched by the number in its name, refused when
+  missing or ambiguous);
+* the calibrated image size is the decoded one — except a codec's macroblock crop (fewer than
+  16 pixels missing at the right or bottom edge, e.g. a 1088-row H.264 stream cropped to 1080):
+  accepted with a warning, the camera keeps the decoded size (its intrinsics are unchanged);
+* the videos have one frame rate and (unless ``stop`` stays within the shortest) one length;
+  views whose sizes differ by such a crop share one image tensor, the smaller ones padded
+  with black at the right/bottom (``meta.image_sizes`` has each view's own size);
+* keypoint files exist for every loaded frame and are of the declared format.
+
+Memory: the images are ``T × C × H × W × 3`` bytes at the working scale — 100 frames of 4
+views of 1088x1920 at ``scale=0.5`` are 100 · 4 · 544 · 960 · 3 B ≈ 0.63 GB (2.5 GB at full
+scale); frames are decoded and scaled one at a time, so the full-resolution frames are never
+all in memory.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import warnings
+from collections.abc import Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from torchmocap.cameras import CameraError, CameraRig, camera_key, read_calibration
+from torchmocap.data.recordings.files import (
+    RecordingCamera,
+    discover_recording,
+)
+from torchmocap.data.recordings.keypoints import (
+    KeypointRequest,
+    KeypointSource,
+    choose_keypoint_source,
+    keypoint_settings,
+)
+from torchmocap.data.recordings.mask_source import (
+    check_mask_settings,
+    mask_mode,
+    read_plates,
+    recording_masks,
+)
+from torchmocap.data.recordings.person_selection import person_agreement, select_person
+from torchmocap.data.subjects.recorded import hull_start, keypoint_start, subject_settings
+from torchmocap.io.frames import (
+    IMAGE_SUFFIXES,
+    FrameSourceError,
+    VideoFrames,
+    check_frame_range,
+    numbered_files,
+    open_frames,
+    read_mask,
+    resize_image,
+    scaled_size,
+)
+from torchmocap.io.openpose import keypoint_format
+
+__all__ = ["CROP_TOLERANCE", "load_recording"]
+
+log = logging.getLogger(__name__)
+
+#: pixels a decoded frame may lack at the right / bottom edge (a codec's macroblock crop)
+CROP_TOLERANCE = 16
+#: frame rate of image folders without ``fps``
+DEFAULT_FPS = 25.0
+
+
+class _LazySizes(Mapping):
+    """Decoded ``(width, height)`` by camera name, opening a camera's frames only when asked
+    (a calibration that stores no sizes asks for every camera it has)."""
+
+    def __init__(self, cameras: Sequence[RecordingCamera], opened: dict[str, Any]) -> None:
+        self._cams = {c.name: c for c in cameras}
+        self._opened = opened
+
+    def __getitem__(self, name: str) -> tuple[int, int]:
+        if name not in self._opened:
+            self._opened[name] = open_frames(self._cams[name].frames)
+        return self._opened[name].size
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._cams)
+
+    def __len__(self) -> int:
+        return len(self._cams)
+
+
+def _find_camera(cams: list[RecordingCamera], name: str) -> list[RecordingCamera]:
+    """The cameras called ``name``, else those with its number (:func:`camera_key`)."""
+    return [c for c in cams if c.name == name] or [c for c in cams if c.key == camera_key(name)]
+
+
+def _heldout_index(chosen: list[RecordingCamera], cams: list[RecordingCamera], heldout
+                   ) -> int | None:
+    """Index among the loaded cameras of the held-out one (by name or index in
+    ``data.cameras``' order), None for none."""
+    if heldout is None:
+        return None
+    where = "evaluation.heldout_camera"
+    names = [c.name for c in chosen]
+    if isinstance(heldout, bool) or not isinstance(heldout, (str, int)):
+        raise ValueError(f"{where}: expected a camera name or index, got {heldout!r}")
+    if isinstance(heldout, int):
+        if not 0 <= heldout < len(chosen):
+            raise ValueError(f"{where}: index {heldout} out of range for the {len(chosen)} "
+                             f"loaded cameras {names}")
+        h = heldout
+    else:
+        hits = _find_camera(chosen, heldout)
+        if len(hits) != 1:
+            if len(_find_camera(cams, heldout)) == 1:
+                raise ValueError(f"{where}: camera {heldout!r} is not among the loaded cameras "
+                                 f"(data.cameras: {names}); add it there to hold it out")
+            raise ValueError(f"{where}: unknown camera {heldout!r}; the recording has "
+                             f"{[c.name for c in cams]}")
+        h = chosen.index(hits[0])
+    if len(chosen) < 2:
+        raise ValueError(f"{where}: holding out {names[h]!r} leaves no camera to track with "
+                         f"(data.cameras: {names})")
+    return h
+
+
+def _choose_cameras(cams: list[RecordingCamera], cameras) -> list[RecordingCamera]:
+    if cameras is None:
+        return cams
+    if isinstance(cameras, (str, int)):
+        cameras = [cameras]
+    names = [c.name for c in cams]
+    out = []
+    for sel in cameras:
+        if isinstance(sel, bool) or not isinstance(sel, (str, int)):
+            raise ValueError(f"data.cameras: expected camera names or indices, got {sel!r}")
+        if isinstance(sel, int):
+            if not 0 <= sel < len(cams):
+                raise ValueError(f"data.cameras: index {sel} out of range; the recording has "
+                                 f"{len(cams)} cameras {names}")
+            cam = cams[sel]
+        else:
+            hits = _find_camera(cams, sel)
+            if len(hits) != 1:
+                raise ValueError(f"data.cameras: unknown camera {sel!r}; the recording has "
+                                 f"{names}")
+            cam = hits[0]
+        if cam in out:
+            raise ValueError(f"data.cameras: camera {cam.name!r} chosen twice")
+        out.append(cam)
+    if not out:
+        raise ValueError("data.cameras: expected at least one camera")
+    return out
+
+
+def _match_calibration(rig: CameraRig, cams: list[RecordingCamera], path: Path) -> list[int]:
+    idx = []
+    for cam in cams:
+        hits = [i for i, n in enumerate(rig.names) if camera_key(n) == cam.key]
+        if not hits:
+            raise CameraError(f"{path}: no calibration for camera {cam.name!r} ({cam.frames}); "
+                              f"the calibration has {rig.names}")
+        if len(hits) > 1:
+            raise CameraError(f"{path}: calibration entries {[rig.names[i] for i in hits]} all "
+                              f"match camera {cam.name!r}; rename them")
+        idx.append(hits[0])
+    return idx
+
+
+def _check_sizes(rig: CameraRig, sources: list, cams: list[RecordingCamera], calib: Path
+                 ) -> CameraRig:
+    """The rig with each camera's decoded size (crop accepted with a warning)."""
+    sizes = []
+    for c, (src, cam) in enumerate(zip(sources, cams)):
+        W, H = (int(v) for v in rig.image_size[c].tolist())
+        w, h = src.size
+        if (w, h) != (W, H):
+            if not (0 <= W - w < CROP_TOLERANCE and 0 <= H - h < CROP_TOLERANCE):
+                raise CameraError(f"{cam.frames}: frames are {w}x{h} but the calibration "
+                                  f"({calib}, {rig.names[c]}) says {W}x{H}; the calibration "
+                                  "is of other images")
+            warnings.warn(f"{cam.frames}: frames are {w}x{h}, the calibration ({rig.names[c]}) "
+                          f"says {W}x{H}: a codec's crop of {W - w} columns / {H - h} rows at "
+                          f"the right / bottom edge; using {w}x{h}", stacklevel=3)
+        sizes.append((w, h))
+    return CameraRig(rig.K, rig.R, rig.t, sizes, rig.dist, [c.name for c in cams])
+
+
+def _check_streams(sources: list, cams: list[RecordingCamera], fps, stop) -> tuple[float, int,
+                                                                                   str]:
+    """Common frame rate, usable frame count, and where the rate came from."""
+    videos = [(s, c) for s, c in zip(sources, cams) if isinstance(s, VideoFrames)]
+    rates = {round(s.fps, 3) for s, _ in videos}
+    if len(rates) > 1:
+        raise FrameSourceError("videos of different frame rates: " + ", ".join(
+            f"{c.frames} {s.fps:g} fps" for s, c in videos))
+    if fps is not None and (isinstance(fps, bool) or not isinstance(fps, (int, float)) or
+                            not (math.isfinite(fps) and fps > 0)):
+        raise ValueError(f"data.fps: expected a frame rate > 0 or null, got {fps!r}")
+    if videos:
+        rate, origin = videos[0][0].fps, "video"
+        if fps is not None and abs(fps - rate) > 1e-3 * rate:
+            raise ValueError(f"data.fps: {fps} differs from the videos' {rate:g} fps (data.fps "
+                             "is for image folders)")
+    else:
+        rate, origin = (float(fps), "data.fps") if fps is not None else (DEFAULT_FPS, "default")
+    counts = [s.num_frames for s in sources]
+    if len(set(counts)) > 1 and (stop is None or (isinstance(stop, int) and stop > min(counts))):
+        raise FrameSourceError(
+            "cameras of different lengths: " + ", ".join(
+                f"{c.frames} {n} frames" for c, n in zip(cams, counts)) +
+            f"; set data.stop <= {min(counts)} to use the frames all of them have")
+    return rate, min(counts), origin
+
+
+def _read_masks(cam: RecordingCamera, frames: range, size: tuple[int, int], scale: float
+                ) -> Iterator[np.ndarray]:
+    files = numbered_files(cam.masks, IMAGE_SUFFIXES)
+    from PIL import Image
+
+    for t in frames:
+        if t not in files:
+            raise FrameSourceError(f"{cam.masks}: no mask file for frame {t}")
+        m = Image.fromarray(read_mask(files[t], size))
+        yield np.asarray(resize_image(m, scale, Image.NEAREST))
+
+
+def _scale_joints(joints: torch.Tensor, scale: float) -> torch.Tensor:
+    """Pixels of the full-size images to the scaled ones (``u' + 0.5 = s (u + 0.5)``)."""
+    seen = joints[..., 2:3] > 0
+    uv = scale * (joints[..., :2] + 0.5) - 0.5
+    return torch.where(seen, torch.cat([uv, joints[..., 2:3]], -1), torch.zeros_like(joints))
+
+
+def _canvas(sources: list, cams: list[RecordingCamera], scale: float) -> tuple[int, int]:
+    """``(W, H)`` of the image tensor: the largest scaled view; views may be smaller only by
+    a codec's crop (they are padded at the right / bottom)."""
+    biggest = [max(s.size[i] for s in sources) for i in (0, 1)]
+    if any(b - v >= CROP_TOLERANCE for s in sources for b, v in zip(biggest, s.size)):
+        raise FrameSourceError(
+            "views of different image sizes cannot share one image tensor: " + ", ".join(
+                f"{c.frames} {s.size[0]}x{s.size[1]}" for s, c in zip(sources, cams)))
+    sizes = [scaled_size(s.size, scale) for s in sources]
+    return max(w for w, _ in sizes), max(h for _, h in sizes)
+
+
+def _load_keypoints(source: KeypointSource, request: KeypointRequest, kp: dict[str, Any],
+                    rig: CameraRig, scale: float) -> tuple[torch.Tensor, str, dict, dict]:
+    """``joints2d (T, C, K, 3)`` float32 in the scaled images' pixels, the format, the
+    selection report and the source's report."""
+    det = source.read(request)
+    people, fmt = det.people, det.format
+    K = len(keypoint_format(fmt))
+    if not det.associated or any(x.shape[0] > 1 for frame in people for x in frame):
+        joints, selection = select_person(people, rig, kp["min_confidence"])
+        selection["method"] = "triangulation"
+    else:
+        joints = torch.stack([torch.stack([
+            x[0] if x.shape[0] else torch.zeros(K, 3, dtype=torch.float64) for x in frame])
+            for frame in people])
+        low = joints[..., 2] < kp["min_confidence"]
+        joints = torch.where(low[..., None], torch.zeros_like(joints), joints)
+        agree = person_agreement(joints, rig)
+        selection = {"method": "associated", "views": {
+            cam.name: {"people": [int(frame[c].shape[0]) for frame in people],
+                       "agreement_px": [None if math.isnan(v) else round(v, 2)
+                                        for v in agree[:, c].tolist()]}
+            for c, cam in enumerate(request.cameras)}}
+    return _scale_joints(joints, scale).float(), fmt, selection, det.report
+
+
+def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | None = None,
+                   start: int = 0, stop: int | None = None, stride: int = 1,
+                   scale: float = 0.5, keypoints: Mapping[str, Any] | None = None,
+                   masks: str = "auto", mask_settings: Mapping[str, Any] | None = None,
+                   mask_cache: str | Path | None = None, subject: Mapping[str, Any] | None = None,
+                   heldout_camera: str | int | None = None,
+                   fps: float | None = None, unit: str | float | None = None, seed: int = 0):
+    """A recording folder as a :class:`~torchmocap.data.Sequence` (``scenario="recorded"``).
+
+    Args:
+        path: the recording folder (layout: :mod:`torchmocap.data.recordings.files`).
+        cameras: the cameras to load, by name (``"cam01"``, or anything with its number) or by
+            index in name order; None = all.
+        start, stop, stride: frames ``start, start + stride, … < stop`` (stop None = the end).
+        scale: image scale in (0, 1]; the rig is scaled with
+            :meth:`~torchmocap.cameras.CameraRig.scaled_images`, keypoints with it.
+        keypoints: ``source`` (a registered keypoint source,
+            :mod:`torchmocap.data.recordings.keypoints`: ``openpose``; ``auto``: the first
+            whose files every camera has, else none; ``none``), ``format`` (``auto``,
+            ``body_25b``, ``body_25``, ``coco_17``, ``halpe_26``), ``min_confidence``
+            (keypoints below it count as missed: confidence and position 0), and the chosen
+            source's own settings (``openpose``: ``folder``). Defaults:
+            :data:`~torchmocap.data.recordings.keypoints.KEYPOINT_SETTINGS` and the source's
+            config file.
+        masks: ``auto`` (mask files when every camera has them, else computed when the
+            recording has keypoints or background plates, else none), ``files`` (required),
+            ``compute``, ``none`` (:mod:`torchmocap.data.recordings.mask_source`).
+        mask_settings: :class:`~torchmocap.data.recordings.masks.MaskSettings` of computed masks
+            (their
+            dict form without ``scale``: the masks are computed at ``scale``).
+        mask_cache: folder caching computed masks (and their preview PNGs); None = no cache.
+        subject: settings of the subject fit to the keypoints
+            (:func:`~torchmocap.data.subjects.recorded.subject_settings`: ``frames``,
+            ``max_error_px``, ``keypoint_map``).
+        heldout_camera: a camera (name, or index among the loaded ones) held out of what a
+            tracker sees: the masks of the other views, the subject fit and the person selection
+            use only the others; :func:`~torchmocap.data.heldout.split_heldout` splits the
+            sequence into the tracked views and the held-out one.
+        fps: frame rate of image folders (videos carry theirs; default 25 with a warning).
+        unit: length unit of the calibration's translations; None = the format's default
+            (TOML and intri/extri metres, Bouguet millimetres).
+        seed: unused (loading is deterministic); accepted like every data source's.
+
+    Returns:
+        the :class:`~torchmocap.data.Sequence`: ``fps``, ``rig`` (float32, the chosen cameras,
+        scaled), ``images (T, C, H, W, 3)`` uint8, ``view_dropped (T, C)`` False,
+        ``silhouettes (T, C, H, W)`` bool when masks are loaded, ``joints2d (T, C, K, 3)``
+        float32 (u, v, confidence in the scaled images' pixels; zeros = not detected) with
+        ``joint_names`` the format's keypoint names when keypoints are loaded, and ``meta``:
+        ``source: "recording"``, ``path``, ``calibration``, ``cameras``,
+        ``calibration_names``, ``frames`` (video / folder per camera), ``frame_indices``,
+        ``fps``, ``fps_source``, ``scale``, ``image_sizes`` (decoded, per camera),
+        ``calibrated_image_sizes``, ``keypoint_format``, ``keypoint_source`` (the source's
+        name), ``keypoint_report`` (what it read or computed), ``selection``
+        (per view: people per frame, the chosen person, frames with several people,
+        reprojection agreement in px of the full-size images), ``masks`` (the folders or
+        None), ``mask_source`` (``files``, ``computed`` or None), ``mask_report`` (computed
+        masks: :func:`~torchmocap.data.recordings.masks.compute_masks`' report, cache entry,
+        preview),
+        ``background`` (plate paths per camera), ``images_bytes``, ``heldout_camera`` (name
+        or None); with keypoints the fitted subject (``subject_skeleton``, ``initial_poses``,
+        ``keypoint_map``, ``skeleton_scale``, ``subject_fit``), with masks only a visual-hull
+        start (``subject_skeleton``, ``initial_poses`` one per heading, ``hull_top_m``): see
+        :mod:`torchmocap.data.subjects.recorded`.
+
+    Raises:
+        RecordingLayoutError: missing folder, calibration, frames or keypoints (named).
+        CameraError: a camera without (or with ambiguous) calibration, a calibrated size that
+            is not the decoded one.
+        FrameSourceError: unreadable videos/images/masks, videos of different rates or
+            lengths, missing per-frame files (named).
+        KeypointFormatError: keypoint files of another format, empty or unparsable.
+        ValueError: a setting out of bounds (named ``data.<setting>``).
+
+    Example:
+        >>> seq = load_recording("pose2sim_balancing", stop=4, cameras=["cam03"])  # doctest: +SKIP
+        >>> seq.images.shape, seq.joints2d.shape                                   # doctest: +SKIP
+        (torch.Size([4, 1, 960, 544, 3]), torch.Size([4, 1, 25, 3]))
+    """
+    from torchmocap.data.metadata import SequenceMeta
+    from torchmocap.data.sequence import Sequence as Seq
+
+    files = discover_recording(path)
+    chosen = _choose_cameras(files.cameras, cameras)
+    h = _heldout_index(chosen, files.cameras, heldout_camera)
+    seen = [i for i in range(len(chosen)) if i != h]
+    kp = keypoint_settings(keypoints)
+    fit_settings = subject_settings(subject)
+    settings = check_mask_settings(mask_settings)
+    opened: dict[str, Any] = {}
+    sources = [opened.setdefault(c.name, open_frames(c.frames)) for c in chosen]
+    rate, length, fps_source = _check_streams(sources, chosen, fps, stop)
+    try:
+        frames = check_frame_range(length, start, stop, stride, scale, "the recording")
+    except ValueError as e:
+        raise ValueError(f"data.{e}") from None
+    if fps_source == "default" and len(frames) > 1:
+        warnings.warn(f"{files.root}: image folders carry no frame rate; using "
+                      f"{DEFAULT_FPS:g} fps (set data.fps)", stacklevel=2)
+    full = read_calibration(files.calibration, _LazySizes(files.cameras, opened), unit)
+    idx = _match_calibration(full, chosen, files.calibration)
+    calibrated = full.subset(idx)
+    rig = _check_sizes(calibrated, sources, chosen, files.calibration)
+
+    canvas = _canvas(sources, chosen, scale)
+    request = KeypointRequest(files.root, chosen, frames, kp["format"], sources)
+    source = choose_keypoint_source(kp, request)
+    joints2d, fmt, selection, kp_report = (None, None, None, None) if source is None else \
+        _load_keypoints(source, request, kp, rig, scale)
+    if source is not None and h is not None:  # the tracked views' person chosen without it
+        request_seen = KeypointRequest(files.root, [chosen[i] for i in seen], frames,
+                                       kp["format"], [sources[i] for i in seen])
+        chosen_seen, _, selection, _ = _load_keypoints(source, request_seen, kp,
+                                                       rig.subset(seen), scale)
+        joints2d[:, seen] = chosen_seen
+    mode = mask_mode(masks, chosen, source is not None, files.root)
+    T, C = len(frames), len(chosen)
+    images = torch.zeros(T, C, canvas[1], canvas[0], 3, dtype=torch.uint8)
+    log.info("loading %d frames x %d views of %dx%d: %.2f GB of images", T, C, *canvas,
+             images.numel() / 1e9)
+    for c, src in enumerate(sources):
+        w, h_img = scaled_size(src.size, scale)
+        for t, frame in enumerate(src.frames(frames.start, frames.stop, frames.step, scale)):
+            images[t, c, :h_img, :w].numpy()[:] = frame
+    meta = SequenceMeta(
+        source="recording", path=str(files.root), calibration=str(files.calibration),
+        cameras=[c.name for c in chosen], calibration_names=calibrated.names,
+        frames={c.name: str(c.frames) for c in chosen},
+        frame_indices=list(frames), fps=rate, fps_source=fps_source, scale=scale,
+        image_sizes={c.name: list(s.size) for c, s in zip(chosen, sources)},
+        calibrated_image_sizes={c.name: [int(v) for v in calibrated.image_size[i].tolist()]
+                                for i, c in enumerate(chosen)},
+        keypoint_format=fmt, keypoint_source=None if source is None else source.name,
+        keypoint_report=kp_report, selection=selection,
+        masks={c.name: str(c.masks) for c in chosen} if mode == "files" else None,
+        mask_source={"files": "files", "compute": "computed"}.get(mode),
+        background={c.name: [str(p) for p in c.background] for c in chosen},
+        images_bytes=images.numel(),
+        heldout_camera=None if h is None else chosen[h].name)
+    seq = Seq(fps=rate, scenario="recorded", rig=rig.scaled_images(scale).float(),
+              view_dropped=torch.zeros(T, C, dtype=torch.bool), images=images,
+              joints2d=joints2d, joint_names=[] if fmt is None else list(keypoint_format(fmt)),
+              meta=meta)
+    tracked = seq if h is None else seq.select_cameras(seen)
+    if mode == "files":
+        seq.silhouettes = torch.zeros(T, C, canvas[1], canvas[0], dtype=torch.bool)
+        for c, (src, cam) in enumerate(zip(sources, chosen)):
+            w, h_img = scaled_size(src.size, scale)
+            for t, m in enumerate(_read_masks(cam, frames, src.size, scale)):
+                seq.silhouettes[t, c, :h_img, :w].numpy()[:] = m
+    elif mode == "compute":
+        seq.silhouettes, meta.mask_report = _computed_masks(
+            seq, tracked, seen, h, read_plates(chosen, scale), settings, mask_cache)
+    if h is not None:
+        tracked.silhouettes = None if seq.silhouettes is None else \
+            seq.select_cameras(seen).silhouettes
+    if joints2d is not None and tracked.num_cameras < 2:
+        meta.subject_fit = {"skipped": f"the keypoints of one view ({tracked.rig.names}) "
+                                          "cannot be triangulated"}
+    elif joints2d is not None:
+        meta.update(keypoint_start(tracked.joints2d, tracked.joint_names, fmt, tracked.rig,
+                                   fit_settings, scale))
+    elif tracked.silhouettes is not None and tracked.num_cameras >= 2:
+        meta.update(hull_start(tracked.rig, tracked.silhouettes[0]))
+    return seq
+
+
+def _computed_masks(seq, tracked, seen: list[int], h: int | None, plates, settings, cache
+                    ) -> tuple[torch.Tensor, dict]:
+    """Masks of every view of ``seq``: the tracked views' computed from them alone, the
+    held-out view's (view ``h``) from every view (it scores the track, it is not tracked)."""
+    T, C, H, W = seq.images.shape[:4]
+    out = torch.zeros(T, C, H, W, dtype=torch.bool)
+    masks, report = recording_masks(tracked.images, tracked.rig, [plates[i] for i in seen],
+                                    tracked.joints2d, settings, cache)
+    out[:, seen, :masks.shape[2], :masks.shape[3]] = masks
+    if h is not None:
+        every, rep = recording_masks(seq.images, seq.rig, plates, seq.joints2d, settings, cache)
+        out[:, h] = every[:, h]
+        report["heldout_view"] = {k: rep[k] for k in ("mask_fraction", "cache", "preview")
+                                  if k in rep}
+    return out, report
