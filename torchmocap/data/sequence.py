@@ -113,6 +113,9 @@ class Frame:
         depth: ``(N, 3)`` points.
         joints2d: ``(C, J, 3)`` (u, v, confidence).
         theta, positions, rotations: ground truth ``(D,)``, ``(J, 3)``, ``(J, 3, 3)``.
+
+    A tracker sees the frame through :meth:`~torchmocap.filters.Tracker.observe`: the tracking
+    IMUs only, as rotation matrices ``imu (S, 3, 3)``, and no ground truth.
     """
 
     index: int
@@ -127,6 +130,23 @@ class Frame:
     theta: Tensor | None = None
     positions: Tensor | None = None
     rotations: Tensor | None = None
+
+    def has_evidence(self, modality: str) -> bool:
+        """Whether the frame holds usable observations of ``modality``: present, and for IMUs
+        a sample that was not dropped, for silhouettes a view that was not."""
+        if modality not in MODALITIES:
+            raise ValueError(f"modality: unknown modality {modality!r}; expected one of "
+                             f"{list(MODALITIES)}")
+        if modality == "imu":
+            return self.imu is not None and (self.imu_valid is None or bool(self.imu_valid.any()))
+        if modality == "silhouettes":
+            return self.silhouettes is not None and (
+                self.view_dropped is None or not bool(self.view_dropped.all()))
+        if modality == "ground_truth":
+            return self.theta is not None
+        if modality == "rig":
+            return True
+        return getattr(self, modality) is not None
 
 
 def _json_safe(x: Any) -> Any:

@@ -45,6 +45,7 @@ from torchmocap.filters.smoothing import (
 from torchmocap.filters.tracking import (
     BatchGroup,
     BestParticleEstimator,
+    BodyFit,
     CheckpointError,
     Estimator,
     FrameInfo,
@@ -85,6 +86,7 @@ __all__ = [
     "ResidualResampler",
     "SIRInference",
     "ShrinkingDiffusion",
+    "BodyFit",
     "SilhouetteBodyFit",
     "Smoother",
     "SmootherChain",

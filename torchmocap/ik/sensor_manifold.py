@@ -32,6 +32,7 @@ from torchmocap.geometry.subproblems import (
     axes_are_orthogonal,
     three_axis_decomposition,
 )
+from torchmocap.stateful import Stateful
 
 __all__ = [
     "PAPER_SENSORS",
@@ -184,7 +185,7 @@ def _euler_candidates(M: torch.Tensor, h: torch.Tensor, default_t1: torch.Tensor
     return torch.stack([first, second], dim=1), gimbal
 
 
-class SensorManifold(nn.Module):
+class SensorManifold(nn.Module, Stateful):
     """The sensor manifold of a skeleton: ``g`` (pose -> active coordinates) and ``g^{-1}``.
 
     Args:
@@ -437,6 +438,14 @@ class SensorManifold(nn.Module):
         """Orientations ``R_TS = R_TB R_SB^T`` that perfect sensors would read, ``(*, S, 3, 3)``."""
         R_tb = self.bone_orientations(theta)
         return R_tb @ self.sensor_to_bone.to(R_tb.dtype).transpose(-1, -2)
+
+    def checkpoint_state(self) -> dict[str, torch.Tensor]:
+        """The calibration ``sensor_to_bone`` (:meth:`calibrate`), saved in a tracker's
+        checkpoints (:class:`~torchmocap.stateful.Stateful`)."""
+        return {"sensor_to_bone": self.sensor_to_bone.detach().clone()}
+
+    def load_checkpoint_state(self, state: dict[str, torch.Tensor]) -> None:
+        self.sensor_to_bone = state["sensor_to_bone"]
 
     @torch.no_grad()
     def calibrate(self, theta0: torch.Tensor, sensors0: torch.Tensor) -> torch.Tensor:

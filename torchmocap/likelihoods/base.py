@@ -19,6 +19,16 @@ A term is an ``nn.Module`` with
   uninformative energy for every particle — never a "perfect" 0 — and the tracker reports the
   frame.
 
+and declares its **capabilities**:
+
+- ``differentiable``: whether the energy has gradients with respect to the poses (default yes; a
+  0/1 coverage test has none), so that an inference that descends it (local descent, a
+  mixture's local optimisation) can be refused a term it cannot use, naming it
+  (``differentiable_hint`` says what to use instead);
+- ``offers_gauss_newton(observation)`` and ``gauss_newton(poses, observation, hessian)``: an
+  analytic energy, gradient and Gauss–Newton Hessian (default: none; 2D joints offer them),
+  which a Levenberg–Marquardt inference uses instead of autograd.
+
 :class:`WeightedSum` combines terms with weights from the config (``V = Σ_k w_k V_k``; a term of
 weight 0 is neither evaluated nor required). :class:`FrameEnergy` binds a likelihood to one
 prepared frame, giving the ``theta (P, D) -> (P,)`` callable that inference algorithms minimise.
@@ -127,10 +137,30 @@ class Likelihood(nn.Module):
     """Base class of likelihood terms (see the module docstring for the contract).
 
     Subclasses set ``requires`` and implement :meth:`energy`; override :meth:`prepare` for
-    per-frame preprocessing. ``forward`` is :meth:`energy`.
+    per-frame preprocessing, and the capabilities (:attr:`differentiable`,
+    :meth:`offers_gauss_newton` with :meth:`gauss_newton`) where they differ from the defaults.
+    ``forward`` is :meth:`energy`.
     """
 
     requires: tuple[str, ...] = ()
+    #: what to use instead when :attr:`differentiable` is False (for error messages)
+    differentiable_hint: str = ""
+
+    @property
+    def differentiable(self) -> bool:
+        """Whether the energy has gradients with respect to the poses (default: yes)."""
+        return True
+
+    def offers_gauss_newton(self, observation: Any) -> bool:
+        """Whether :meth:`gauss_newton` gives this term's derivatives for ``observation``
+        (default: no)."""
+        return False
+
+    def gauss_newton(self, poses: Poses, observation: Any, hessian: bool = True):
+        """Energy ``(P,)``, analytic gradient ``(P, D)`` and Gauss–Newton Hessian
+        ``(P, D, D)`` (None when ``hessian`` is False) of ``poses``; only where
+        :meth:`offers_gauss_newton`."""
+        raise NotImplementedError(f"{type(self).__name__} offers no Gauss-Newton derivatives")
 
     def prepare(self, frame: Any) -> Any:
         """Per-frame preprocessing of ``frame`` (a :class:`~torchmocap.data.Frame`); the result
@@ -248,6 +278,28 @@ class WeightedSum(Likelihood):
             total = wv if total is None else total + wv
         return total
 
+    @property
+    def differentiable(self) -> bool:
+        """Every active term is differentiable."""
+        return all(self.terms[k].differentiable for k in self.active_terms())
+
+    def offers_gauss_newton(self, observation: Mapping[str, Any]) -> bool:
+        """Every term present in the frame offers Gauss–Newton derivatives."""
+        present = self.present_terms(observation)
+        return bool(present) and all(self.terms[k].offers_gauss_newton(observation[k])
+                                     for k in present)
+
+    def gauss_newton(self, poses: Poses, observation: Mapping[str, Any], hessian: bool = True):
+        """The weighted sum of the present terms' Gauss–Newton derivatives."""
+        tot = None
+        for k in self.present_terms(observation):
+            w = self._weight(k)
+            v, g, H = self.terms[k].gauss_newton(poses, observation[k], hessian)
+            part = (w * v, w * g, None if H is None else w * H)
+            tot = part if tot is None else (tot[0] + part[0], tot[1] + part[1],
+                                            None if H is None else tot[2] + part[2])
+        return tot
+
     def extra_repr(self) -> str:
         return f"weights={self.weights}" + (f", optional={list(self.optional)}"
                                             if self.optional else "")
@@ -273,6 +325,22 @@ class FrameEnergy:
             raise ValueError(f"theta: expected shape (P, D), got {tuple(theta.shape)}")
         v = self.likelihood.energy(Poses(theta, self.skeleton), self.observation)
         return check_energy(v, theta.shape[0], f"likelihood {type(self.likelihood).__name__}")
+
+    @property
+    def differentiable(self) -> bool:
+        """Whether the likelihood is differentiable (:attr:`Likelihood.differentiable`)."""
+        return self.likelihood.differentiable
+
+    @property
+    def offers_gauss_newton(self) -> bool:
+        """Whether :meth:`gauss_newton` is available for the bound frame."""
+        return self.likelihood.offers_gauss_newton(self.observation)
+
+    def gauss_newton(self, theta: torch.Tensor, hessian: bool = True):
+        """``V (P,)``, ``grad (P, D)`` and the Gauss–Newton ``H (P, D, D)`` (None when
+        ``hessian`` is False) of ``theta (P, D)``: the likelihood's analytic derivatives."""
+        return self.likelihood.gauss_newton(Poses(theta, self.skeleton), self.observation,
+                                            hessian)
 
     def missing_evidence(self) -> list[str]:
         """Terms (names) without usable evidence in the bound frame."""

@@ -415,6 +415,10 @@ class Joints2DLikelihood(Likelihood):
             v = v / max(1, observation.hidden.numel())
         return v
 
+    def offers_gauss_newton(self, observation: Joints2DObservation) -> bool:
+        """Analytic derivatives for undistorted pinhole cameras."""
+        return not self.rig.has_distortion
+
     def gauss_newton(self, poses: Poses | torch.Tensor, observation: Joints2DObservation,
                      hessian: bool = True):
         """Energy, analytic gradient and Gauss–Newton Hessian.

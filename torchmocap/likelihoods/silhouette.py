@@ -453,6 +453,14 @@ class SilhouetteLikelihood(Likelihood):
 
     requires = ("silhouettes",)
 
+    differentiable_hint = ("the smooth silhouette term (smooth: true, e.g. "
+                           "likelihood=smooth_image); the 0/1 coverage test has no gradient")
+
+    @property
+    def differentiable(self) -> bool:
+        """The smooth variant only (the hard one's coverage test is 0/1)."""
+        return self.smooth
+
     def __init__(self, body, rig, smooth: bool = False, fg_samples: int = 64,
                  blur: float | None = None, axis_samples: int = 5, across_samples: int = 3,
                  tau: float = 1.5, distance: float | None = None,

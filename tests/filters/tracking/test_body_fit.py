@@ -206,7 +206,7 @@ def test_tracker_refit_passes_alternate_pose_and_body():
         "tracker.num_particles=40", "tracker.inference.layers=4", "tracker.inference.rounds=1",
         "tracker.body_fit.iterations=10", "tracker.body_fit.stride=4"])
     tr = build_tracker(cfg, rt, seed=0)
-    assert tr.refit_passes == 1 and tr.body_fit is not None
+    assert tr.body_fit is not None and tr.body_fit.refit_passes == 1
     start = th.clone()
     start[sk.dof_index("l_shoulder_abd")] = 0.0  # the arm down
     state = tr.init(start[None], frame)
@@ -249,11 +249,13 @@ def test_tracker_refit_passes_alternate_pose_and_body():
     assert m["scales"] == pytest.approx(p["body_fit"]["scales"])
     assert m["total_scales"] == pytest.approx(total)
     with pytest.raises(ValueError, match="refit_passes"):
-        Tracker(sk, tr.predictor, tr.proposal, tr.likelihood, tr.inference, tr.estimator,
-                refit_passes=-1)
+        SilhouetteBodyFit(CapsuleBody(sk), rig, refit_passes=-1)
     with pytest.raises(ValueError, match="refit_scale"):
+        SilhouetteBodyFit(CapsuleBody(sk), rig, refit_scale=0.0)
+    with pytest.raises(TypeError, match="body_fit: expected a torchmocap.filters.tracking."
+                                        "body_fit.BodyFit"):
         Tracker(sk, tr.predictor, tr.proposal, tr.likelihood, tr.inference, tr.estimator,
-                refit_scale=0.0)
+                body_fit=lambda theta, frame: {})
 
 
 def test_checkpoint_keeps_the_fitted_body(tmp_path):

@@ -280,7 +280,12 @@ def test_the_tracker_sees_no_truth_and_no_validation_sensors(walk):
     f.theta = theta[3]
     seen = Tracker.observe(f, seq.imu.tracking.nonzero()[:, 0])
     assert seen.theta is None and seen.positions is None and seen.rotations is None
-    assert seen.imu.shape == (5, 4) and torch.equal(seen.imu, f.imu[:5])
+    # the tracking sensors only, as rotation matrices (converted once, here)
+    from torchmocap.geometry import quaternion_to_matrix
+
+    assert seen.imu.shape == (5, 3, 3)
+    assert torch.equal(seen.imu, quaternion_to_matrix(f.imu[:5]))
+    assert torch.equal(Tracker.observe(seen).imu, seen.imu)  # rotations pass through
 
 
 def test_constructor_errors(walk):

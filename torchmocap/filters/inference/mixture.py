@@ -63,7 +63,7 @@ from torchmocap.distributions.covariance_scaled import (
 from torchmocap.filters.inference.base import Inference, InferenceResult
 from torchmocap.filters.optim.local import minimise_local
 from torchmocap.filters.optim.temporal_prior import TemporalPrior
-from torchmocap.likelihoods.base import Poses, WeightedSum
+from torchmocap.likelihoods.base import FrameEnergy
 
 __all__ = [
     "MixtureInference",
@@ -79,36 +79,13 @@ OPTIMISERS = ("auto", "gauss_newton", "lbfgs", "none")  # "auto" + LOCAL_OPTIMIS
 
 # ---------------------------------------------------------------------- derivatives
 def gauss_newton_function(energy):
-    """``fn(theta (P, D), hessian: bool) -> (V (P,), grad (P, D), H (P, D, D) | None)`` from
-    the analytic Gauss–Newton derivatives of a bound likelihood
-    (:class:`~torchmocap.likelihoods.FrameEnergy`) whose every active term has a
-    ``gauss_newton(poses, observation, hessian)`` method; None otherwise."""
-    lik = getattr(energy, "likelihood", None)
-    sk = getattr(energy, "skeleton", None)
-    if lik is None or sk is None or not hasattr(energy, "observation"):
-        return None
-    obs = energy.observation
-    if hasattr(lik, "gauss_newton"):
-        def single(theta, hessian=True):
-            return lik.gauss_newton(Poses(theta, sk), obs, hessian)
-        return single
-    if isinstance(lik, WeightedSum):
-        active = lik.present_terms(obs)
-        if not active or not all(hasattr(lik.terms[k], "gauss_newton") for k in active):
-            return None
-
-        def summed(theta, hessian=True):
-            poses = Poses(theta, sk)
-            tot = None
-            for k in active:
-                w = float(lik.weights[k])
-                v, g, H = lik.terms[k].gauss_newton(poses, obs[k], hessian)
-                part = (w * v, w * g, None if H is None else w * H)
-                tot = part if tot is None else (
-                    tot[0] + part[0], tot[1] + part[1],
-                    None if H is None else tot[2] + part[2])
-            return tot
-        return summed
+    """``fn(theta (P, D), hessian: bool) -> (V (P,), grad (P, D), H (P, D, D) | None)``: the
+    analytic Gauss–Newton derivatives of a bound likelihood
+    (:class:`~torchmocap.likelihoods.FrameEnergy`) that offers them
+    (:meth:`~torchmocap.likelihoods.Likelihood.offers_gauss_newton`); None otherwise (any
+    other callable energy)."""
+    if isinstance(energy, FrameEnergy) and energy.offers_gauss_newton:
+        return energy.gauss_newton
     return None
 
 
@@ -190,7 +167,8 @@ def _gauss_newton_required(energy, theta, hessian, step):
     out = _gauss_newton(energy, theta, hessian, step)
     if out is None:
         raise ValueError("energy: Gauss-Newton derivatives need a likelihood whose every "
-                         "active term has gauss_newton() (e.g. Joints2DLikelihood)")
+                         "active term offers them (offers_gauss_newton, e.g. "
+                         "Joints2DLikelihood)")
     return out
 
 

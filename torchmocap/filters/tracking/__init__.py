@@ -3,7 +3,7 @@ likelihood, an inference module and an estimator), its typed state and records, 
 and the pose predictor, the first frame's body fit, and several tracks in one batch."""
 
 from torchmocap.filters.tracking.batched import BatchGroup, Lockstep, track_groups, track_seeds
-from torchmocap.filters.tracking.body_fit import SilhouetteBodyFit
+from torchmocap.filters.tracking.body_fit import BodyFit, SilhouetteBodyFit
 from torchmocap.filters.tracking.estimators import (
     BestParticleEstimator,
     Estimator,
@@ -31,6 +31,7 @@ __all__ = [
     "ManifoldMeanEstimator",
     "MissingObservationError",
     "PosePredictor",
+    "BodyFit",
     "SilhouetteBodyFit",
     "TemporalMapEstimator",
     "Track",

@@ -49,6 +49,7 @@ import torch
 
 from torchmocap.filters.tracking.state import Track
 from torchmocap.filters.tracking.tracker import Tracker, check_seed, check_working_memory
+from torchmocap.likelihoods.base import FrameEnergy
 
 __all__ = ["BatchGroup", "Lockstep", "track_groups", "track_seeds"]
 
@@ -208,11 +209,13 @@ class Lockstep:
         self.close()
 
 
-class _SharedEnergy:
+class _SharedEnergy(FrameEnergy):
     """A task's view of a frame energy shared by the tasks of a batch: calls under
-    ``torch.no_grad`` on ``(P, D)`` particles are batched, anything else is passed through."""
+    ``torch.no_grad`` on ``(P, D)`` particles are batched, anything else is evaluated directly
+    (the other methods of the frame energy are its own)."""
 
-    def __init__(self, energy, lockstep: Lockstep, index: int, key: Any) -> None:
+    def __init__(self, energy: FrameEnergy, lockstep: Lockstep, index: int, key: Any) -> None:
+        super().__init__(energy.likelihood, energy.observation, energy.skeleton)
         self._energy, self._lockstep, self._index, self._key = energy, lockstep, index, key
 
     def __call__(self, x, *args, **kwargs):
@@ -220,9 +223,6 @@ class _SharedEnergy:
                 or x.dim() != 2:
             return self._energy(x, *args, **kwargs)
         return self._lockstep.request(self._index, self._key, self._energy, x)
-
-    def __getattr__(self, name: str):
-        return getattr(self._energy, name)
 
 
 @dataclass

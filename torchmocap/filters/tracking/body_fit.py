@@ -34,6 +34,9 @@ masks as given.
 from __future__ import annotations
 
 import math
+import time
+from collections.abc import Callable
+from typing import Any
 
 import torch
 from torch import nn
@@ -47,8 +50,9 @@ from torchmocap.likelihoods.silhouette import (
     silhouette_iou,
     soft_capsule_silhouettes,
 )
+from torchmocap.stateful import Stateful
 
-__all__ = ["SilhouetteBodyFit"]
+__all__ = ["BodyFit", "SilhouetteBodyFit"]
 
 
 def _segment(name: str) -> str:
@@ -58,7 +62,83 @@ def _segment(name: str) -> str:
     return name
 
 
-class SilhouetteBodyFit(nn.Module):
+class BodyFit(nn.Module, Stateful):
+    """A fit of the tracker's body to the first frame once its pose is known (the tracker's
+    ``body_fit``): it changes the runtime body in place, so every term holding the body sees the
+    fit, and saves that body in the tracker's checkpoints (:class:`~torchmocap.stateful.Stateful`).
+
+    Subclasses implement ``forward(theta (D,), frame) -> info`` (a JSON-ready report).
+    :meth:`start` is what the tracker runs: the fit and, when the tracker refines the first frame
+    (``refine_first_frame``), ``refit_passes`` coarse-to-fine passes — the first frame's pose is
+    refined again with the fitted body (the proposal's spread scaled by ``refit_scale``; the new
+    pose is kept when its energy is lower) and the body refitted at it. The pose found with the
+    initial (anthropometric) radii is biased by them, and the radii fitted at a biased pose are
+    too; each pass reduces both.
+
+    Args:
+        body: the runtime :class:`~torchmocap.body.CapsuleBody` (changed in place).
+        refit_passes: passes after the first fit (with a refining tracker; 0: none).
+        refit_scale: factor on the proposal's spread of the refit passes (the pose is close).
+    """
+
+    #: the body's tensors the fit changes (saved in checkpoints)
+    STATE = ("radii", "end_shrink", "axis_offsets")
+
+    def __init__(self, body, refit_passes: int = 0, refit_scale: float = 0.25) -> None:
+        super().__init__()
+        if isinstance(refit_passes, bool) or not isinstance(refit_passes, int) \
+                or refit_passes < 0:
+            raise ValueError(f"refit_passes: expected an int >= 0, got {refit_passes!r}")
+        if not (isinstance(refit_scale, (int, float)) and not isinstance(refit_scale, bool)
+                and 0 < refit_scale <= 1):
+            raise ValueError(f"refit_scale: expected a number in (0, 1], got {refit_scale!r}")
+        self.body = body
+        self.refit_passes, self.refit_scale = refit_passes, float(refit_scale)
+
+    def checkpoint_state(self) -> dict[str, torch.Tensor]:
+        return {k: v.detach().clone() for k, v in self.body.state_dict().items()
+                if k in self.STATE}
+
+    def load_checkpoint_state(self, state: dict[str, torch.Tensor]) -> None:
+        for k, v in state.items():
+            getattr(self.body, k).copy_(v)
+
+    def start(self, theta0: torch.Tensor, frame0, refine: Callable | None = None
+              ) -> tuple[torch.Tensor, Any, dict, list[dict] | None]:
+        """Fit the body at the first pose ``theta0 (D,)`` and run the refit passes.
+
+        Args:
+            refine: the tracker's refinement of the first frame, ``refine(theta (D,), scale) ->
+                (estimate (D,), result, energies (2,))`` — the energies of ``theta`` and the
+                estimate with the body as it is now; None: no refit passes.
+
+        Returns:
+            the first pose (refined when a pass lowered its energy), the inference result of the
+            kept refinement (None: the caller's stands), the fit's report (with ``seconds``), and
+            the passes' reports (None without passes).
+        """
+        t0 = time.perf_counter()
+        info = self(theta0, frame0)
+        info["seconds"] = time.perf_counter() - t0
+        if refine is None or not self.refit_passes:
+            return theta0, None, info, None
+        kept, passes = None, []
+        for _ in range(self.refit_passes):
+            t0 = time.perf_counter()
+            est, res, v = refine(theta0, self.refit_scale)
+            better = bool(v[1] < v[0])
+            if better:
+                theta0, kept = est, res
+            t1 = time.perf_counter()
+            fit = self(theta0, frame0)
+            fit["seconds"] = time.perf_counter() - t1
+            passes.append({"energy_before": float(v[0]), "energy_after": float(v[1]),
+                           "kept": better, "seconds": time.perf_counter() - t0,
+                           "body_fit": fit})
+        return theta0, kept, info, passes
+
+
+class SilhouetteBodyFit(BodyFit):
     """Fit per-segment capsule radii to one frame's silhouettes at a known pose.
 
     Args:
@@ -86,6 +166,7 @@ class SilhouetteBodyFit(nn.Module):
         hull_voxel: voxel edge of that hull (metres).
         hull_margin: the hull is carved in the box around the capsules at the pose, padded by
             this (metres) plus the largest radius.
+        refit_passes, refit_scale: the coarse-to-fine passes of :meth:`BodyFit.start`.
 
     A fit that lowers the hard IoU of the masks it fitted (the soft IoU's optimum need not be
     the hard IoU's) is undone: the body is left as it was and ``kept`` is ``False``. A fit
@@ -107,8 +188,9 @@ class SilhouetteBodyFit(nn.Module):
                  fg_samples: int = 400, offsets=(), max_offset: float = 0.08,
                  offset_lr: float = 0.005, offset_prior: float = 0.1,
                  hull_filter: bool = False, hull_voxel: float = 0.02,
-                 hull_margin: float = 0.3) -> None:
-        super().__init__()
+                 hull_margin: float = 0.3, refit_passes: int = 0,
+                 refit_scale: float = 0.25) -> None:
+        super().__init__(body, refit_passes, refit_scale)
         if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 0:
             raise ValueError(f"iterations: expected an int >= 0, got {iterations!r}")
         if not (0 < min_scale <= 1 <= max_scale and math.isfinite(max_scale)):
@@ -116,7 +198,7 @@ class SilhouetteBodyFit(nn.Module):
                              f"got {min_scale}, {max_scale}")
         if not (isinstance(lr, (int, float)) and lr > 0):
             raise ValueError(f"lr: expected a number > 0, got {lr!r}")
-        self.body, self.rig = body, rig
+        self.rig = rig
         self.iterations, self.lr = iterations, float(lr)
         self.min_scale, self.max_scale = float(min_scale), float(max_scale)
         self.fg_samples = int(fg_samples)

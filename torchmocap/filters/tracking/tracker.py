@@ -11,7 +11,8 @@ Per frame ``t``:
    **estimator** turns the final particle set into the estimate (eq. 18);
 4. the estimate (clamped to the joint limits) joins the history.
 
-The tracker owns nothing but that loop, the random generator, checkpoints and the sensor
+The tracker owns nothing but that loop, the random generator, checkpoints (every
+:class:`~torchmocap.stateful.Stateful` component saves its own state in them) and the sensor
 calibration at frame 0 (eq. 8). Which paper method it is depends only on the components it is
 built from (``conf/tracker/*.yaml``); it never dispatches on a method name. Every component
 declares the observation modalities it reads (``requires``): :meth:`Tracker.run` refuses a
@@ -34,11 +35,12 @@ from torch import nn
 
 from torchmocap.filters.inference.base import Inference
 from torchmocap.filters.smoothing.base import Smoother
+from torchmocap.filters.tracking.body_fit import BodyFit
 from torchmocap.filters.tracking.estimators import Estimator
 from torchmocap.filters.tracking.state import FrameInfo, Track, TrackState
 from torchmocap.likelihoods.base import FrameEnergy, Likelihood
-from torchmocap.likelihoods.orientation import sensor_evidence
 from torchmocap.proposals.base import Proposal, ProposalContext
+from torchmocap.stateful import Stateful
 
 __all__ = [
     "SEED_RANGE",
@@ -50,6 +52,8 @@ __all__ = [
     "check_working_memory",
 ]
 
+#: the format version of :meth:`Tracker.save_checkpoint` (3: components save their own state)
+CHECKPOINT_VERSION = 3
 #: the seeds a ``torch.Generator`` takes (its 64-bit state; negative seeds wrap around)
 SEED_RANGE = (-(2 ** 63), 2 ** 64 - 1)
 
@@ -127,20 +131,18 @@ def _check_component(obj, kind, name: str):
 def _check_descent_energy(inference: Inference, likelihood: Likelihood) -> None:
     """An inference that takes gradients of the energy (``differentiates_energy``: a
     :class:`LocalInference`, alone or as a ``refine`` stage, or a mixture's local optimisation)
-    needs a differentiable energy: the 0/1 coverage test of a non-smooth silhouette term has no
-    gradient, so a descent would silently ignore it (and autograd refuses its kernels)."""
-    from torchmocap.likelihoods.silhouette import SilhouetteLikelihood
-
+    needs a differentiable energy (:attr:`~torchmocap.likelihoods.Likelihood.differentiable`):
+    a descent would otherwise silently ignore the term (and autograd refuses its kernels)."""
     users = [type(m).__name__ for m in inference.modules()
-             if getattr(m, "differentiates_energy", False)]
+             if isinstance(m, Inference) and m.differentiates_energy]
     if not users:
         return
     for name, m in likelihood.named_modules():
-        if isinstance(m, SilhouetteLikelihood) and not m.smooth:
+        if isinstance(m, Likelihood) and not m.differentiable and not any(
+                isinstance(c, Likelihood) for c in m.modules() if c is not m):
             where = f"likelihood.{name}" if name else "likelihood"
-            raise ValueError(f"{where}: {users[0]} takes gradients of the energy and needs the "
-                             "smooth silhouette term (smooth: true, e.g. "
-                             "likelihood=smooth_image); the 0/1 coverage test has no gradient")
+            raise ValueError(f"{where}: {users[0]} takes gradients of the energy and needs "
+                             f"{m.differentiable_hint or 'a differentiable term'}")
 
 
 class Tracker(nn.Module):
@@ -162,17 +164,11 @@ class Tracker(nn.Module):
         name: label (progress bar, metrics), e.g. the preset name.
         refine_first_frame: run the inference on frame 0 too, from the given initial pose (or
             a set of candidate poses ``(K, D)``) — for fits of a real frame from a rough start.
-        body_fit: optional callable ``(theta0, frame0) -> info`` run at :meth:`init` after the
-            first pose is known, e.g. :class:`~torchmocap.filters.SilhouetteBodyFit`
-            (fits the capsule radii — and axis offsets — to the first frame; its body is saved in
-            checkpoints).
-        refit_passes: with ``refine_first_frame`` and a ``body_fit``: coarse-to-fine passes
-            after the first fit — the first frame's pose is refined again with the fitted
-            body (the proposal's spread scaled by ``refit_scale``; the new pose is kept when
-            its energy is lower) and the body refitted at it. The pose found with the initial
-            (anthropometric) radii is biased by them, and the radii fitted at a biased pose
-            are too; each pass reduces both.
-        refit_scale: factor on the proposal's spread of the refit passes (the pose is close).
+        body_fit: optional :class:`~torchmocap.filters.tracking.body_fit.BodyFit` started at
+            :meth:`init` once the first pose is known, e.g.
+            :class:`~torchmocap.filters.SilhouetteBodyFit` (fits the capsule radii — and axis
+            offsets — to the first frame, and with ``refine_first_frame`` refines that pose
+            again with the fitted body: its ``refit_passes``).
         smoother: optional :class:`~torchmocap.filters.smoothing.Smoother` applied to the
             finished track (:meth:`run`): ``Track.theta`` is then the smoothed track and
             ``Track.filtered`` the per-frame estimates (which alone feed the prediction).
@@ -181,17 +177,9 @@ class Tracker(nn.Module):
     def __init__(self, skeleton, predictor, proposal: Proposal, likelihood: Likelihood,
                  inference: Inference, estimator: Estimator, num_particles: int = 200,
                  manifold=None, seed: int = 0, name: str = "tracker",
-                 refine_first_frame: bool = False,
-                 body_fit=None, refit_passes: int = 0, refit_scale: float = 0.25,
+                 refine_first_frame: bool = False, body_fit: BodyFit | None = None,
                  smoother: Smoother | None = None) -> None:
         super().__init__()
-        if isinstance(refit_passes, bool) or not isinstance(refit_passes, int) \
-                or refit_passes < 0:
-            raise ValueError(f"refit_passes: expected an int >= 0, got {refit_passes!r}")
-        if not (isinstance(refit_scale, (int, float)) and not isinstance(refit_scale, bool)
-                and 0 < refit_scale <= 1):
-            raise ValueError(f"refit_scale: expected a number in (0, 1], got {refit_scale!r}")
-        self.refit_passes, self.refit_scale = refit_passes, float(refit_scale)
         if isinstance(num_particles, bool) or not isinstance(num_particles, int) \
                 or num_particles < 1:
             raise ValueError(f"num_particles: expected an int >= 1, got {num_particles!r}")
@@ -210,17 +198,16 @@ class Tracker(nn.Module):
         self.seed = seed
         self.name = str(name)
         self.refine_first_frame = bool(refine_first_frame)
-        if body_fit is not None and not callable(body_fit):
-            raise TypeError(f"body_fit: expected a callable, got {type(body_fit).__name__}")
-        self.body_fit = body_fit
+        self.body_fit = None if body_fit is None else _check_component(body_fit, BodyFit,
+                                                                        "body_fit")
         self.smoother = None if smoother is None else _check_component(smoother, Smoother,
                                                                         "smoother")
-        # IMU samples read by the proposal or estimator only (P's sensor-manifold proposal): a
-        # frame whose samples are all dropped is reported like a likelihood term without
-        # evidence (an orientation term in the likelihood reports it itself)
-        users = self._users_of("imu")
-        self._imu_outside_likelihood = bool(users) and not any(
-            u.startswith("likelihood") for u in users)
+        # modalities read by the proposal or estimator only (P's sensor-manifold proposal reads
+        # the IMUs): a frame without evidence of one is reported like a likelihood term without
+        # evidence (a likelihood term reports its own)
+        self._outside_likelihood = tuple(
+            m for c in (self.proposal, self.estimator) for m in getattr(c, "requires", ())
+            if m not in self.likelihood.requires)
         if smoother is not None:
             smoother.check(self.inference)
 
@@ -296,11 +283,18 @@ class Tracker(nn.Module):
     @staticmethod
     def observe(frame, tracking: torch.Tensor | None = None):
         """What a tracker may see of a :class:`~torchmocap.data.Frame`: the tracking IMUs only
-        (``tracking``: their indices or a bool mask), no ground truth."""
+        (``tracking``: their indices or a bool mask), their orientations as rotation matrices
+        ``imu (S, 3, 3)`` (converted once per frame; every component reading IMUs takes
+        either form), no ground truth."""
+        from torchmocap.ik.sensor_manifold import sensor_rotations
+
         imu, valid = frame.imu, frame.imu_valid
         if imu is not None and tracking is not None:
             imu = imu[tracking]
             valid = None if valid is None else valid[tracking]
+        if imu is not None:
+            imu = sensor_rotations(imu, imu.shape[-2] if imu.shape[-1] == 4 else imu.shape[-3],
+                                   "frame.imu")
         return dataclasses.replace(frame, imu=imu, imu_valid=valid, theta=None, positions=None,
                                    rotations=None)
 
@@ -339,9 +333,8 @@ class Tracker(nn.Module):
         with torch.no_grad():
             terms = {k: float(v[0]) for k, v in energy.terms(est[None]).items()}
         missing = list(energy.missing_evidence())
-        if self._imu_outside_likelihood and frame.imu is not None and \
-                not sensor_evidence(frame.imu_valid) and "imu" not in missing:
-            missing.append("imu")  # every tracking sensor's sample dropped
+        missing += [m for m in self._outside_likelihood
+                    if not frame.has_evidence(m) and m not in missing]
         if missing:  # terms without usable evidence in this frame (uninformative)
             res.info["no_evidence"] = missing
         return est, res, terms
@@ -381,12 +374,12 @@ class Tracker(nn.Module):
                                        seconds=time.perf_counter() - t0, energy=terms)
             theta0, particles, log_w, carry = est, res.particles, res.log_weights, res.carry
         if self.body_fit is not None and frame0 is not None:
-            t0 = time.perf_counter()
-            info.body_fit = self.body_fit(theta0, frame0)
-            info.body_fit["seconds"] = time.perf_counter() - t0
-            if self.refine_first_frame and self.refit_passes:
-                theta0, particles, log_w, carry = self._refit(theta0, frame0, g, info,
-                                                              (particles, log_w, carry))
+            refine = self._refiner(frame0, g) if self.refine_first_frame else None
+            theta0, kept, info.body_fit, passes = self.body_fit.start(theta0, frame0, refine)
+            if passes is not None:
+                info.refit = passes
+            if kept is not None:
+                particles, log_w, carry = kept.particles, kept.log_weights, kept.carry
             # the whole first frame: the refinement, the body fit and the refit passes
             info.seconds = time.perf_counter() - t_init
         if self.manifold is not None and frame0 is not None and frame0.imu is not None:
@@ -395,29 +388,21 @@ class Tracker(nn.Module):
                           estimates=[theta0.clone()], infos=[info], particles=particles,
                           log_weights=log_w, carry=carry)
 
-    def _refit(self, theta0: torch.Tensor, frame0, g: torch.Generator, info: FrameInfo, kept):
-        """The ``refit_passes`` of :meth:`init`: refine the pose ``(D,)`` with the fitted body,
-        keep it when its energy is lower, refit the body; returns the pose and the particle
-        set, weights and carry of the inference that produced it."""
-        passes = []
-        for _ in range(self.refit_passes):
-            t0 = time.perf_counter()
+    def _refiner(self, frame0, g: torch.Generator):
+        """``refine(theta (D,), scale) -> (estimate, result, energies (2,))``: the inference on
+        the first frame from ``theta`` with the proposal's spread scaled, and the energies of
+        ``theta`` and the estimate (the body as it is then) — the refit passes of a
+        :class:`~torchmocap.filters.tracking.body_fit.BodyFit`."""
+
+        def refine(theta: torch.Tensor, scale: float):
             energy = self.frame_energy(frame0)
-            ctx = dataclasses.replace(self._context(theta0, frame0), scale=self.refit_scale)
+            ctx = dataclasses.replace(self._context(theta, frame0), scale=scale)
             est, res, _ = self._infer(ctx, frame0, g, energy)
             with torch.no_grad():
-                v = energy(torch.stack([theta0, est]))
-            better = bool(v[1] < v[0])
-            if better:
-                theta0, kept = est, (res.particles, res.log_weights, res.carry)
-            t1 = time.perf_counter()
-            fit = self.body_fit(theta0, frame0)
-            fit["seconds"] = time.perf_counter() - t1
-            passes.append({"energy_before": float(v[0]), "energy_after": float(v[1]),
-                           "kept": better, "seconds": time.perf_counter() - t0,
-                           "body_fit": fit})
-        info.refit = passes
-        return (theta0, *kept)
+                v = energy(torch.stack([theta, est]))
+            return est, res, v
+
+        return refine
 
     # ------------------------------------------------------------------ one frame
     def step(self, state: TrackState, frame, energy: FrameEnergy | None = None
@@ -528,18 +513,17 @@ class Tracker(nn.Module):
     # ------------------------------------------------------------------ checkpoints
     def save_checkpoint(self, state: TrackState, path: str, fingerprint: str | None = None
                         ) -> None:
-        """Atomically write the state (and the sensor calibration) to ``path``."""
-        payload = {"format": "torchmocap-track-checkpoint", "version": 2,
+        """Atomically write the state, and every :class:`~torchmocap.stateful.Stateful`
+        component's own (the sensor calibration, a fitted body), to ``path``."""
+        from torchmocap.io.atomic import atomic_path
+
+        payload = {"format": "torchmocap-track-checkpoint", "version": CHECKPOINT_VERSION,
                    "state": state.to_dict(), "name": self.name, "seed": self.seed,
                    "fingerprint": fingerprint,
-                   "sensor_to_bone": None if self.manifold is None
-                   else self.manifold.sensor_to_bone.detach().clone(),
-                   "body": None if getattr(self.body_fit, "body", None) is None else
-                   {k: v.detach().clone() for k, v in self.body_fit.body.state_dict().items()
-                    if k in ("radii", "end_shrink", "axis_offsets")}}
-        tmp = f"{path}.tmp"
-        torch.save(payload, tmp)
-        os.replace(tmp, path)
+                   "components": {path: m.checkpoint_state() for path, m in self.named_modules()
+                                  if isinstance(m, Stateful)}}
+        with atomic_path(path) as tmp:
+            torch.save(payload, tmp)
 
     def load_checkpoint(self, path: str, fingerprint: str | None = None,
                         num_frames: int | None = None) -> TrackState:
@@ -566,12 +550,17 @@ class Tracker(nn.Module):
         if num_frames is not None and state.frame >= num_frames:
             raise CheckpointError(f"checkpoint {path}: has {state.frame + 1} frames, the "
                                   f"sequence only {num_frames}")
-        if self.manifold is not None and payload["sensor_to_bone"] is not None:
-            self.manifold.sensor_to_bone = payload["sensor_to_bone"]
-        body = getattr(self.body_fit, "body", None)
-        if body is not None and payload.get("body"):
-            for k, v in payload["body"].items():
-                getattr(body, k).copy_(v)
+        components = payload.get("components")
+        if payload.get("version") != CHECKPOINT_VERSION or not isinstance(components, dict):
+            raise CheckpointError(f"checkpoint {path}: written by another version of torchmocap "
+                                  f"(format version {payload.get('version')}, expected "
+                                  f"{CHECKPOINT_VERSION}); remove it to start over")
+        ours = {p: m for p, m in self.named_modules() if isinstance(m, Stateful)}
+        if set(components) != set(ours):
+            raise CheckpointError(f"checkpoint {path}: holds the state of components "
+                                  f"{sorted(components)}, this tracker has {sorted(ours)}")
+        for p, st in components.items():
+            ours[p].load_checkpoint_state(st)
         return state
 
     def extra_repr(self) -> str:
