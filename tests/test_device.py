@@ -44,7 +44,7 @@ IDS = ["p", "g", "gs", "rs", "p_sir", "ls", "hauberg_silhouette", "hauberg_depth
 #: modes is a Python loop over a K x K0 (8 x 8) distance matrix — one copy instead of 64 syncs
 #: the mixture's greedy matching loop; the ESS β solve's numpy path, taken only for CPU tensors
 #: (``.numpy()`` shares their memory; a GPU tensor takes the torch solver)
-HOST_ON_PURPOSE = {("mixture.py", "bhattacharyya_reweight"), ("schedules.py", "ess_target_beta")}
+HOST_ON_PURPOSE = {("modes.py", "bhattacharyya_reweight"), ("schedules.py", "ess_target_beta")}
 
 _FACTORIES = {torch.zeros, torch.ones, torch.empty, torch.full, torch.arange, torch.tensor,
               torch.as_tensor, torch.randn, torch.rand, torch.randint, torch.linspace,

@@ -40,7 +40,8 @@ WINDOWS = {
     "cmu/60_12_scaled.bvh": (0, 100),
     "cmu/cmu21_kick.bvh": (0, 50),
     "hdm05/HDM_bk_hopBothLegs1hops_017_120.amc": (0, 100),
-    # the whole file: the subject fit's wrong minimum in frames 58-70 (tests/data/subjects/test_mocap.py)
+    # the whole file: the subject fit's wrong minimum in frames 58-70
+    # (tests/data/subjects/test_mocap.py)
     "hdm05/HDM_bd_rotateArmsBothBackward1Reps_001_120.amc": (0, 90),
 }
 DEFAULT_WINDOW = (0, 40)

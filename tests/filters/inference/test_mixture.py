@@ -12,7 +12,7 @@ import torch
 
 from torchmocap.assembly import Runtime, build_tracker, tracker_config
 from torchmocap.filters import BestParticleEstimator, MixtureInference
-from torchmocap.filters.inference import (
+from torchmocap.filters.optim import (
     bhattacharyya_reweight,
     distinct_minima,
     energy_derivatives,
@@ -147,7 +147,7 @@ class TestEnergyDerivatives:
         x = torch.tensor([[0.3, -0.2]], dtype=torch.float64)
         called = []
 
-        def fake(energy, theta, hessian, step):
+        def fake(energy, theta, hessian, step, gauss_newton):
             called.append(step)
             return energy(theta), torch.zeros_like(theta), None
 

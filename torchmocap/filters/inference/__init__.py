@@ -9,14 +9,7 @@ from torchmocap.filters.inference.annealed import (
 )
 from torchmocap.filters.inference.base import Inference, InferenceResult
 from torchmocap.filters.inference.local import LocalInference
-from torchmocap.filters.inference.mixture import (
-    MixtureInference,
-    bhattacharyya_reweight,
-    distinct_minima,
-    energy_derivatives,
-    gauss_newton_function,
-    levenberg_marquardt,
-)
+from torchmocap.filters.inference.mixture import MixtureInference, gauss_newton_function
 from torchmocap.filters.inference.sir import SIRInference
 
 __all__ = [
@@ -28,9 +21,5 @@ __all__ = [
     "SIRInference",
     "ShrinkingDiffusion",
     "SpreadDiffusion",
-    "bhattacharyya_reweight",
-    "distinct_minima",
-    "energy_derivatives",
     "gauss_newton_function",
-    "levenberg_marquardt",
 ]

@@ -1,6 +1,7 @@
 """The functional core of the filters: algorithms on generic particle tensors ``(P, D)`` —
 annealed particle optimisation (:func:`anneal`), its schedules, resampling, SIR steps, local
-minimisation, the Gaussian temporal prior and rotation coordinates of pose vectors. Nothing here
+minimisation, energy derivatives, batched Levenberg–Marquardt, the modes of a mixture, the
+Gaussian temporal prior and rotation coordinates of pose vectors. Nothing here
 knows a skeleton, a likelihood or a frame; the inference modules
 (:mod:`torchmocap.filters.inference`) build on them.
 """
@@ -15,7 +16,10 @@ from torchmocap.filters.optim.anneal import (
     rotation_mean_fn,
     weighted_mean,
 )
+from torchmocap.filters.optim.derivatives import energy_derivatives
+from torchmocap.filters.optim.levenberg import levenberg_marquardt
 from torchmocap.filters.optim.local import LocalResult, minimise_local
+from torchmocap.filters.optim.modes import bhattacharyya_reweight, distinct_minima
 from torchmocap.filters.optim.resampling import (
     KeepRedrawResampler,
     MultinomialResampler,
@@ -79,16 +83,20 @@ __all__ = [
     "annealing_log_weights",
     "as_resampler",
     "as_schedule",
+    "bhattacharyya_reweight",
     "bound_particles",
     "counts_to_indices",
     "default_diffusion",
+    "distinct_minima",
     "effective_sample_size",
+    "energy_derivatives",
     "ess_fraction",
     "ess_fraction_at_beta",
     "ess_target_beta",
     "euler_matrix",
     "gather_particles",
     "keep_redraw_resample",
+    "levenberg_marquardt",
     "minimise_local",
     "multinomial_resample",
     "normalize_log_weights",
