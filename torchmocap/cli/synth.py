@@ -3,7 +3,7 @@
 Overrides: ``data.clip.path`` (null = the bundled CMU 131_01 walk), ``data.clip.asf``,
 ``data.clip.skeleton_map``, ``data.clip.frames``, ``data.clip.start``, ``data.clip.skip_frames``,
 ``data.clip.fps``, ``data.scenario`` (name or YAML path, see
-:func:`~torchmocap.data.load_scenario`), ``data.scenario_overrides``, ``seed``.
+:func:`~torchmocap.data.synthetic.load_scenario`), ``data.scenario_overrides``, ``seed``.
 Writes ``sequence/`` (manifest.json, arrays.npz, PNG masks and images) and ``preview.png`` into
 the Hydra run directory. Unreadable clips or bad settings: one line on stderr, exit status 2.
 """

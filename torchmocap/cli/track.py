@@ -1,6 +1,7 @@
 """``torchmocap-track``: track a sequence with a tracker assembled from config (Hydra CLI).
 
-Default: the bundled 3 s CMU walk, the ``studio`` scenario, tracker ``p`` (Pons-Moll et al.).
+Default: the bundled 3 s CMU walk, the ``studio`` scenario, tracker ``default`` (the LS baseline of
+Pons-Moll et al.: a local descent of a differentiable silhouette + appearance + orientation energy).
 The sequence comes from the ``data`` node (a ``_target_`` source: synthesised from a clip, or a
 real recording such as ``data=bodytrack``); the tracker is built from the ``tracker`` node by
 :func:`torchmocap.assembly.build_tracker` — the command line never reaches into components.

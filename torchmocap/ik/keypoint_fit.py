@@ -58,6 +58,7 @@ import torch
 
 from torchmocap.geometry.rotations import axis_angle_rotation
 from torchmocap.ik.projection import project_to_skeleton
+from torchmocap.least_squares import DampedProblem, Marquardt, Verdict, damped_least_squares
 from torchmocap.skeleton.keypoints import KeypointMap, keypoint_positions, load_keypoint_map
 from torchmocap.skeleton.skeleton import Skeleton
 
@@ -333,32 +334,39 @@ class _Model:
         return x, Jp[:, self.kp], torch.einsum("kj,tjag->tkag", self.chain, dirs)
 
 
-def _refine(model: _Model, theta: torch.Tensor, params: torch.Tensor, X: torch.Tensor,
-            W: torch.Tensor, prior: torch.Tensor, s2: float, length_prior: float,
-            iterations: int) -> tuple[torch.Tensor, torch.Tensor, int]:
-    """Joint Levenberg-Marquardt refinement of the poses ``(T, D)`` and offset parameters ``(G,)``
-    on the robust cost (module docstring, step 3). Returns both and the iterations run."""
-    T, D = theta.shape
-    G = params.numel()
-    sk = model.aug
-    lo, hi = sk.lower.double(), sk.upper.double()
-    theta0 = theta.clone()
-    seen = W > 0
-    Xz = torch.where(seen[..., None], X, torch.zeros_like(X))
-    lam2, mu2 = length_prior ** 2, _POSE_PULL ** 2
+class _Refinement(DampedProblem):
+    """:func:`_refine`'s one problem: the poses ``(T, D)`` and offset parameters ``(G,)`` on the
+    robust cost, a damped Gauss-Newton step of the IRLS-weighted normal equations (LU) with the
+    box's active set held, retried with more damping until the cost drops."""
 
-    def cost(th, L):
-        r2 = ((model.positions(th, L) - Xz) ** 2).sum(-1)
-        return float((W * s2 * _cauchy(r2, s2)[0]).sum() + lam2 * ((L - prior) ** 2).sum()
-                     + mu2 * ((th - theta0) ** 2).sum())
+    def __init__(self, model: _Model, theta, params, X, W, prior, s2, length_prior):
+        self.model, self.s2 = model, s2
+        self.T, self.D = theta.shape
+        self.G = params.numel()
+        sk = model.aug
+        self.lo, self.hi = sk.lower.double(), sk.upper.double()
+        self.theta, self.params, self.theta0, self.prior = theta, params, theta.clone(), prior
+        self.seen = W > 0
+        self.W = W
+        self.Xz = torch.where(self.seen[..., None], X, torch.zeros_like(X))
+        self.lam2, self.mu2 = length_prior ** 2, _POSE_PULL ** 2
+        self.current = self.cost(theta, params)
+        self.relinearize(torch.ones(1, dtype=torch.bool))
 
-    damping = 1e-3
-    current = cost(theta, params)
-    it = 0
-    for it in range(1, iterations + 1):  # noqa: B007 (read after the loop)
-        x, Jt, JL = model(theta, params)
-        r = torch.where(seen[..., None], x - Xz, torch.zeros_like(x))  # (T, K', 3)
-        w = W * _cauchy((r * r).sum(-1), s2)[1]  # IRLS weights (T, K')
+    def cost(self, th, L) -> float:
+        r2 = ((self.model.positions(th, L) - self.Xz) ** 2).sum(-1)
+        return float((self.W * self.s2 * _cauchy(r2, self.s2)[0]).sum()
+                     + self.lam2 * ((L - self.prior) ** 2).sum()
+                     + self.mu2 * ((th - self.theta0) ** 2).sum())
+
+    def relinearize(self, accepted):
+        if not bool(accepted[0]):
+            return
+        T, D, G, seen = self.T, self.D, self.G, self.seen
+        theta, params, lam2, mu2 = self.theta, self.params, self.lam2, self.mu2
+        x, Jt, JL = self.model(theta, params)
+        r = torch.where(seen[..., None], x - self.Xz, torch.zeros_like(x))  # (T, K', 3)
+        w = self.W * _cauchy((r * r).sum(-1), self.s2)[1]  # IRLS weights (T, K')
         H = torch.zeros(T * D + G, T * D + G, dtype=torch.float64)
         g = torch.zeros(T * D + G, dtype=torch.float64)
         Htt = torch.einsum("tk,tkcd,tkce->tde", w, Jt, Jt) + mu2 * torch.eye(D, dtype=x.dtype)
@@ -370,37 +378,58 @@ def _refine(model: _Model, theta: torch.Tensor, params: torch.Tensor, X: torch.T
         H[T * D:, T * D:] = (torch.einsum("tk,tkcg,tkch->gh", w, JL, JL)
                              + lam2 * torch.eye(G, dtype=x.dtype))
         g[:T * D] = (torch.einsum("tk,tkc,tkcd->td", w, r, Jt)
-                     + mu2 * (theta - theta0)).reshape(-1)
-        g[T * D:] = torch.einsum("tk,tkc,tkcg->g", w, r, JL) + lam2 * (params - prior)
+                     + mu2 * (theta - self.theta0)).reshape(-1)
+        g[T * D:] = torch.einsum("tk,tkc,tkcg->g", w, r, JL) + lam2 * (params - self.prior)
         # active set: a pose variable at a bound whose descent direction leaves the box is held
         tg = g[:T * D].reshape(T, D)
-        held = (((theta <= lo) & (tg > 0)) | ((theta >= hi) & (tg < 0))).reshape(-1)
+        held = (((theta <= self.lo) & (tg > 0)) | ((theta >= self.hi) & (tg < 0))).reshape(-1)
         held = torch.cat([held, torch.zeros(G, dtype=torch.bool)])
         if bool(held.any()):
             H[held] = 0.0
             H[:, held] = 0.0
             H[held, held] = 1.0
             g[held] = 0.0
-        diag = H.diagonal().clamp_min(1e-12)
-        improved = False
-        while damping < 1e8:
-            step = torch.linalg.solve(H + damping * torch.diag(diag), -g)
-            th_new = torch.maximum(torch.minimum(theta + step[:T * D].reshape(T, D), hi), lo)
-            L_new = torch.maximum(params + step[T * D:], 0.5 * prior)
-            new = cost(th_new, L_new)
-            if new < current:
-                improved = True
-                break
-            damping *= 4.0
-        if not improved:
-            break
-        moved = max(float((th_new - theta).abs().max()), float((L_new - params).abs().max()))
-        gain = (current - new) / current
-        theta, params, current = th_new, L_new, new
-        damping = max(damping / 3.0, 1e-9)
-        if moved < _STEP_TOL or gain < _GAIN_TOL:
-            break
-    return theta, params, it
+        self.H, self.g, self.diag = H, g, H.diagonal().clamp_min(1e-12)
+
+    def propose(self, mu, rows):
+        TD = self.T * self.D
+        step = torch.linalg.solve(self.H + mu[0] * torch.diag(self.diag), -self.g)
+        th_new = torch.maximum(torch.minimum(self.theta + step[:TD].reshape(self.T, self.D),
+                                             self.hi), self.lo)
+        L_new = torch.maximum(self.params + step[TD:], 0.5 * self.prior)
+        return th_new, L_new, self.cost(th_new, L_new)
+
+    def assess(self, trial, mu, rows):
+        th_new, L_new, new = trial
+        ok = new < self.current
+        stop = False
+        if ok:
+            moved = max(float((th_new - self.theta).abs().max()),
+                        float((L_new - self.params).abs().max()))
+            gain = (self.current - new) / self.current
+            stop = moved < _STEP_TOL or gain < _GAIN_TOL
+        return Verdict(accepted=torch.tensor([ok]), stop=torch.tensor([stop]))
+
+    def commit(self, trial, accepted, rows):
+        if bool(accepted[0]):
+            self.theta, self.params, self.current = trial
+
+    def retire(self, done, ids):
+        pass  # one problem: its result is the current point
+
+    def keep(self, mask):
+        pass
+
+
+def _refine(model: _Model, theta: torch.Tensor, params: torch.Tensor, X: torch.Tensor,
+            W: torch.Tensor, prior: torch.Tensor, s2: float, length_prior: float,
+            iterations: int) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """Joint Levenberg-Marquardt refinement of the poses ``(T, D)`` and offset parameters ``(G,)``
+    on the robust cost (module docstring, step 3). Returns both and the iterations run."""
+    prob = _Refinement(model, theta, params, X, W, prior, s2, length_prior)
+    run = damped_least_squares(prob, 1, iterations, Marquardt(initial=1e-3, stall=1e8),
+                               retry=True)
+    return prob.theta, prob.params, run.iterations
 
 
 # ----------------------------------------------------------------------------- entry point

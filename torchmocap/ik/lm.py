@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import torch
 
 from torchmocap.geometry.rotations import so3_log
+from torchmocap.least_squares import DampedProblem, Marquardt, Verdict, damped_least_squares
 from torchmocap.skeleton.skeleton import Skeleton
 
 __all__ = ["LMResult", "fit_pose_lm"]
@@ -74,6 +75,59 @@ def _subset(args, ids: torch.Tensor, B: int):
     tp, pj, pw, tr, rj, rw, prior, lw = args
     return (tp[ids], pj, pw, None if tr is None else tr[ids], rj, rw,
             prior[ids] if prior.dim() == 2 else prior, lw)
+
+
+class _PoseProblem(DampedProblem):
+    """The poses of :func:`fit_pose_lm` as damped least-squares problems: Marquardt's scaled
+    damping of ``J^T J``, a step solved by LU, clamped into the joint limits."""
+
+    relinearize_retiring = True  # the Jacobian's residuals give the reported costs
+
+    def __init__(self, sk, theta, args, lo, hi, tol):
+        self.sk, self.args, self.lo, self.hi, self.tol = sk, args, lo, hi, tol
+        self.B, self.D = theta.shape
+        self.theta = theta
+        self.r, self.J, _, _ = _residuals(sk, theta, *args, with_jac=True)
+        self.cost = (self.r * self.r).sum(1)
+        self.eye = torch.eye(self.D, dtype=theta.dtype, device=theta.device)
+        self.ids = torch.arange(self.B, device=theta.device)
+        self.out, self.out_cost = theta.clone(), self.cost.clone()
+
+    def propose(self, mu, rows):
+        J, r = self.J, self.r
+        JtJ = J.transpose(1, 2) @ J
+        g = (J.transpose(1, 2) @ r[..., None])[..., 0]
+        diag = JtJ.diagonal(dim1=1, dim2=2)
+        A = JtJ + mu[:, None, None] * (torch.diag_embed(diag) + 1e-9 * self.eye)
+        step = torch.linalg.solve(A, -g)
+        return torch.maximum(torch.minimum(self.theta + step, self.hi), self.lo)
+
+    def assess(self, trial, mu, rows):
+        r_new, _, _, _ = _residuals(self.sk, trial, *_subset(self.args, self.ids, self.B),
+                                    with_jac=False)
+        cost_new = (r_new * r_new).sum(1)
+        better = cost_new < self.cost
+        rel = (self.cost - cost_new).clamp_min(0) / self.cost.clamp_min(1e-30)
+        return Verdict(accepted=better, stop=(rel < self.tol) & better)
+
+    def commit(self, trial, accepted, rows):
+        self.theta = torch.where(accepted[:, None], trial, self.theta)
+
+    def relinearize(self, accepted):
+        if bool(accepted.any()):  # the accepted candidates' Jacobians (the rejected keep theirs)
+            a = accepted.nonzero().squeeze(1)
+            ra, Ja, _, _ = _residuals(self.sk, self.theta[a],
+                                      *_subset(self.args, self.ids[a], self.B), with_jac=True)
+            self.r = self.r.index_copy(0, a, ra)
+            self.J = self.J.index_copy(0, a, Ja)
+            self.cost = self.cost.index_copy(0, a, (ra * ra).sum(1))
+
+    def retire(self, done, ids):
+        self.out[ids[done]], self.out_cost[ids[done]] = self.theta[done], self.cost[done]
+
+    def keep(self, mask):
+        self.ids, self.theta, self.r, self.J, self.cost = (
+            t[mask] for t in (self.ids, self.theta, self.r, self.J, self.cost))
 
 
 def fit_pose_lm(
@@ -139,47 +193,13 @@ def fit_pose_lm(
     theta = torch.maximum(torch.minimum(theta0.detach().clone(), hi), lo)
     tr = target_rotations.to(dtype) if target_rotations is not None else None
     args = (target_positions.to(dtype), pj, pw, tr, rj, rw, prior, lw)
-    mu = torch.full((B,), float(damping), dtype=dtype, device=device)
-    r, J, _, _ = _residuals(skeleton, theta, *args, with_jac=True)
-    cost = (r * r).sum(1)
-    eye = torch.eye(D, dtype=dtype, device=device)
-    # working set: a problem leaves the batch once it has converged (an accepted step lowered
-    # its cost by less than ``tol`` relative) or stalled (damping at its cap)
-    out = theta.clone()
-    out_cost = cost.clone()
-    ids = torch.arange(B, device=device)
-    it = 0
-    for it in range(1, iterations + 1):  # noqa: B007 (read after the loop)
-        JtJ = J.transpose(1, 2) @ J
-        g = (J.transpose(1, 2) @ r[..., None])[..., 0]
-        diag = JtJ.diagonal(dim1=1, dim2=2)
-        A = JtJ + mu[:, None, None] * (torch.diag_embed(diag) + 1e-9 * eye)
-        step = torch.linalg.solve(A, -g)
-        cand = torch.maximum(torch.minimum(theta + step, hi), lo)
-        sub = _subset(args, ids, B)
-        r_new, _, _, _ = _residuals(skeleton, cand, *sub, with_jac=False)
-        cost_new = (r_new * r_new).sum(1)
-        better = cost_new < cost
-        rel = (cost - cost_new).clamp_min(0) / cost.clamp_min(1e-30)
-        theta = torch.where(better[:, None], cand, theta)
-        mu = torch.where(better, (mu / 3).clamp_min(1e-9), (mu * 4).clamp_max(1e9))
-        done = ((rel < tol) & better) | (mu >= 1e9)
-        if better.any():
-            # the accepted candidates' Jacobians (the rejected keep theirs)
-            a = better.nonzero().squeeze(1)
-            ra, Ja, _, _ = _residuals(skeleton, theta[a], *_subset(args, ids[a], B),
-                                      with_jac=True)
-            r = r.index_copy(0, a, ra)
-            J = J.index_copy(0, a, Ja)
-            cost = cost.index_copy(0, a, (ra * ra).sum(1))
-        if it == iterations or bool(done.all()):
-            out[ids], out_cost[ids] = theta, cost
-            break
-        if bool(done.any()):
-            out[ids[done]], out_cost[ids[done]] = theta[done], cost[done]
-            keep = ~done
-            ids, theta, mu, r, J, cost = (t[keep] for t in (ids, theta, mu, r, J, cost))
-    theta, cost = out, out_cost
+    # a problem leaves the batch once it has converged (an accepted step lowered its cost by
+    # less than ``tol`` relative) or stalled (damping at its cap)
+    prob = _PoseProblem(skeleton, theta, args, lo, hi, float(tol))
+    run = damped_least_squares(prob, B, iterations, Marquardt(initial=float(damping)),
+                               device=device, dtype=dtype)
+    it = run.iterations
+    theta, cost = prob.out, prob.out_cost
     _, _, e_p, e_r = _residuals(skeleton, theta, *args, with_jac=False)
     return LMResult(
         theta=theta,

@@ -51,6 +51,13 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from torchmocap.least_squares import (
+    DampedProblem,
+    Nielsen,
+    Verdict,
+    compact_when_worthwhile,
+    damped_least_squares,
+)
 from torchmocap.skeleton.skeleton import Skeleton
 
 __all__ = ["ProjectionResult", "SkeletonProjection", "project_to_skeleton"]
@@ -686,46 +693,46 @@ def project_to_skeleton(
         return _solve(prob, targets, iterations, float(tol), float(damping), return_trace)
 
 
-def _solve(prob: _Problem, targets, iterations, tol, damping, return_trace) -> ProjectionResult:
-    P, M = prob.P, prob.M
-    dtype, device = targets.dtype, targets.device
-    lo, hi, lam2, wts = prob.lo, prob.hi, prob.lam2, prob.w
-    tol2, near2 = tol * tol, _NEWTON_RADIUS * _NEWTON_RADIUS
+class _Projection(DampedProblem):
+    """The batch of one :func:`project_to_skeleton` as damped least-squares problems: a
+    box-constrained (Gauss-)Newton step (:func:`_box_step`) damped by the Gauss-Newton diagonal,
+    Nielsen's damping from the gain over the model's predicted decrease, the exact Hessian once
+    a step moved no joint more than :data:`_NEWTON_RADIUS` (the Gauss-Newton matrix where it is
+    not positive definite). Finished problems stay in the batch, frozen, until enough have
+    finished; the SoA tensors carry the problems in their last dimension."""
 
-    # working set (problems still iterating); finished ones are written to the outputs.
-    # SoA tensors (positions, residuals, targets) carry the problems in their last dimension.
-    th = prob.theta0.clone()
-    th0 = prob.theta0
-    base = prob.theta0_full  # the fixed DoFs' values (all of them, per problem)
-    x = prob.x
-    p, w = prob.kinematics(prob.full(th, base))
-    res = p[:M] - x
-    zero = torch.zeros_like(th)
-    cost = prob.cost(res, zero)
-    H, g, dgn, _ = prob.derivatives(p, w, x, zero)
-    HG = None  # Gauss-Newton matrices where H holds the exact Hessian (``near`` rows)
-    near = torch.zeros(P, dtype=torch.bool, device=device)
-    fin = torch.zeros(P, dtype=torch.bool, device=device)  # finished, still in the batch
-    conv = torch.zeros(P, dtype=torch.bool, device=device)
-    mu = torch.full((P,), damping, dtype=dtype, device=device)
-    nu = torch.full((P,), 2.0, dtype=dtype, device=device)
-    ids = torch.arange(P, device=device)
+    def __init__(self, prob: _Problem, tol: float, return_trace: bool):
+        self.prob = prob
+        P, M = prob.P, prob.M
+        device = prob.x.device
+        self.tol2, self.near2 = tol * tol, _NEWTON_RADIUS * _NEWTON_RADIUS
+        self.th = prob.theta0.clone()
+        self.th0 = prob.theta0
+        self.base = prob.theta0_full  # the fixed DoFs' values (all of them, per problem)
+        self.x = prob.x
+        p, w = prob.kinematics(prob.full(self.th, self.base))
+        self.res = p[:M] - self.x
+        zero = torch.zeros_like(self.th)
+        self.cost = prob.cost(self.res, zero)
+        self.H, self.g, self.dgn, _ = prob.derivatives(p, w, self.x, zero)
+        self.HG = None  # Gauss-Newton matrices where H holds the exact Hessian (``near`` rows)
+        self.near = torch.zeros(P, dtype=torch.bool, device=device)
+        self.out_theta = self.base.clone()
+        self.out_res = self.res.clone()
+        self.out_cost = self.cost.clone()
+        self.trace = [self.cost.clone()] if return_trace else None
 
-    out_theta = base.clone()
-    out_res = res.clone()
-    out_cost = cost.clone()
-    out_conv = torch.zeros(P, dtype=torch.bool, device=device)
-    trace = [cost.clone()] if return_trace else None
-    it = 0
-    for it in range(1, iterations + 1):  # noqa: B007 (read after the loop)
-        # --- damped, projected (Gauss-)Newton step; where the exact Hessian is not positive
+    def propose(self, mu, rows):
+        # damped, projected (Gauss-)Newton step; where the exact Hessian is not positive
         # definite, the Gauss-Newton matrix replaces it (for this point) and is used at once
-        damp = dgn * mu[:, None]
+        prob, th, g, H = self.prob, self.th, self.g, self.H
+        lo, hi = prob.lo, prob.hi
+        damp = self.dgn * mu[:, None]
         cand, ok = _box_step(H, g, th, lo, hi, damp)
-        if HG is not None:
-            fb = (near & ~ok).nonzero().squeeze(1)
+        if self.HG is not None:
+            fb = (self.near & ~ok).nonzero().squeeze(1)
             if fb.numel():
-                Hf = HG[fb]
+                Hf = self.HG[fb]
                 cf, okf = _box_step(Hf, g[fb], th[fb], lo, hi, damp[fb])
                 cand, ok = cand.index_copy(0, fb, cf), ok.index_copy(0, fb, okf)
                 H.index_copy_(0, fb, Hf)
@@ -734,78 +741,91 @@ def _solve(prob: _Problem, targets, iterations, tol, damping, return_trace) -> P
         # d^T H d = 2 d.(Hl d) - sum diag(H) d^2
         Hdd = torch.bmm(H, d[..., None])[..., 0]
         pred = (d * (H.diagonal(dim1=1, dim2=2) * d - 2 * (g + Hdd))).sum(1)
+        # the candidate's cost change from residual differences (no cancellation)
+        p_c, w_c = prob.kinematics(prob.full(cand, self.base))
+        res_c = p_c[:prob.M] - self.x
+        dp = res_c - self.res
+        dcost = prob.w @ (dp * (res_c + self.res)).sum(1)
+        if prob.lam2:
+            dcost = dcost + prob.lam2 * (d * (d + 2 * (th - self.th0))).sum(1)
+        return cand, ok, pred, p_c, w_c, res_c, dp, dcost
 
-        # --- evaluate the candidate; cost change from residual differences (no cancellation)
-        p_c, w_c = prob.kinematics(prob.full(cand, base))
-        res_c = p_c[:M] - x
-        dp = res_c - res
-        dcost = wts @ (dp * (res_c + res)).sum(1)
-        if lam2:
-            dcost = dcost + lam2 * (d * (d + 2 * (th - th0))).sum(1)
-        acc = ok & (dcost <= 0) & (pred > 0) & ~fin
-        mu_used = mu
+    def assess(self, trial, mu, rows):
+        cand, ok, pred, p_c, w_c, res_c, dp, dcost = trial
         rho = torch.where(pred > 0, -dcost / pred, 0.0).clamp_(0.0, 1.0)
-        shrink = (1 - (2 * rho - 1) ** 3).clamp_min_(_MIN_SHRINK)
-        mu = torch.where(acc, mu * shrink, mu * nu)
-        nu = torch.where(acc, 2.0, 2 * nu)
-        disp2 = (dp * dp).sum(1).amax(0)
-        # the exact Hessian from the first accepted step that moved no joint more than 1 cm
-        near = near | (acc & (disp2 <= near2))
+        self.disp2 = (dp * dp).sum(1).amax(0)
         # converged: the step (accepted or not: at the minimum the sign of a 1e-17 cost change
-        # is rounding) moves no joint more than tol, with the damping not dominating it;
-        # stalled (damping blown up): stops, not flagged converged. Finished problems stay in
-        # the batch, frozen, until enough have finished to make dropping them worthwhile.
-        conv = conv | (~fin & ok & (disp2 <= tol2) & (mu_used <= 1.0))
-        fin = fin | conv | (mu >= _MU_MAX)
+        # is rounding) moves no joint more than tol, with the damping not dominating it
+        return Verdict(accepted=ok & (dcost <= 0) & (pred > 0), gain=rho,
+                       converged=ok & (self.disp2 <= self.tol2) & (mu <= 1.0))
 
-        th = torch.where(acc[:, None], cand, th)
-        cost = torch.where(acc, cost + dcost, cost)
-        res = torch.where(acc, res_c, res)
-        if return_trace:
-            trace.append(out_cost.index_copy(0, ids, cost))
-        n_fin = int(fin.sum())
-        last = it == iterations or n_fin == ids.numel()
-        if last or n_fin >= max(16, ids.numel() // 8):
-            done = fin if not last else torch.ones_like(fin)
-            sel = ids[done]
-            out_theta[sel] = prob.full(th[done], base[done])
-            out_cost[sel], out_conv[sel] = cost[done], conv[done]
-            out_res[..., sel] = res[..., done]
-            if last:
-                break
-            keep = ~done
-            ids, th, th0, base, cost, H, g, dgn, mu, nu, acc, near, fin, conv = (
-                t[keep] for t in (ids, th, th0, base, cost, H, g, dgn, mu, nu, acc, near, fin,
-                                  conv))
-            HG = None if HG is None else HG[keep]
-            x, res, p_c, w_c = (t[..., keep] for t in (x, res, p_c, w_c))
+    def commit(self, trial, accepted, rows):
+        cand, ok, pred, p_c, w_c, res_c, dp, dcost = trial
+        # the exact Hessian from the first accepted step that moved no joint more than 1 cm
+        self.near = self.near | (accepted & (self.disp2 <= self.near2))
+        self.th = torch.where(accepted[:, None], cand, self.th)
+        self.cost = torch.where(accepted, self.cost + dcost, self.cost)
+        self.res = torch.where(accepted, res_c, self.res)
+        self.p_c, self.w_c = p_c, w_c
+
+    def iterated(self, iteration, ids):
+        if self.trace is not None:
+            self.trace.append(self.out_cost.index_copy(0, ids, self.cost))
+
+    def retire(self, done, ids):
+        sel = ids[done]
+        self.out_theta[sel] = self.prob.full(self.th[done], self.base[done])
+        self.out_cost[sel] = self.cost[done]
+        self.out_res[..., sel] = self.res[..., done]
+
+    def keep(self, mask):
+        (self.th, self.th0, self.base, self.cost, self.H, self.g, self.dgn,
+         self.near) = (t[mask] for t in (self.th, self.th0, self.base, self.cost, self.H,
+                                         self.g, self.dgn, self.near))
+        self.HG = None if self.HG is None else self.HG[mask]
+        self.x, self.res, self.p_c, self.w_c = (t[..., mask] for t in (self.x, self.res,
+                                                                      self.p_c, self.w_c))
+
+    def relinearize(self, accepted):
         # derivatives at the accepted candidates only; the rejected keep theirs
-        n_acc = int(acc.sum())
+        n_acc = int(accepted.sum())
         if not n_acc:
-            continue
-        if n_acc == acc.numel():
-            H, g, dgn, HGa = prob.derivatives(p_c, w_c, x, th - th0, near)
+            return
+        prob, dth = self.prob, self.th - self.th0
+        if n_acc == accepted.numel():
+            self.H, self.g, self.dgn, HGa = prob.derivatives(self.p_c, self.w_c, self.x, dth,
+                                                             self.near)
             if HGa is not None:
-                HG = HGa
+                self.HG = HGa
         else:
-            a = acc.nonzero().squeeze(1)
+            a = accepted.nonzero().squeeze(1)
             Ha, ga, da, HGa = prob.derivatives(
-                p_c.index_select(-1, a), w_c.index_select(-1, a), x.index_select(-1, a),
-                (th - th0).index_select(0, a), near.index_select(0, a))
-            H.index_copy_(0, a, Ha)
-            g.index_copy_(0, a, ga)
-            dgn.index_copy_(0, a, da)
+                self.p_c.index_select(-1, a), self.w_c.index_select(-1, a),
+                self.x.index_select(-1, a), dth.index_select(0, a),
+                self.near.index_select(0, a))
+            self.H.index_copy_(0, a, Ha)
+            self.g.index_copy_(0, a, ga)
+            self.dgn.index_copy_(0, a, da)
             if HGa is not None:
-                HG = H.clone() if HG is None else HG
-                HG.index_copy_(0, a, HGa)
+                self.HG = self.H.clone() if self.HG is None else self.HG
+                self.HG.index_copy_(0, a, HGa)
+
+
+def _solve(prob: _Problem, targets, iterations, tol, damping, return_trace) -> ProjectionResult:
+    solve = _Projection(prob, tol, return_trace)
+    run = damped_least_squares(solve, prob.P, iterations,
+                               Nielsen(initial=damping, min_shrink=_MIN_SHRINK, maximum=_MU_MAX),
+                               compact=compact_when_worthwhile, device=targets.device,
+                               dtype=targets.dtype)
+    out_res = solve.out_res
     residual = (out_res * out_res).sum(1).sqrt_().t()
     return ProjectionResult(
-        theta=out_theta,
+        theta=solve.out_theta,
         residual=residual,
-        cost=out_cost,
-        converged=out_conv,
-        iterations=it,
-        cost_trace=torch.stack(trace) if return_trace else None,
+        cost=solve.out_cost,
+        converged=run.converged,
+        iterations=run.iterations,
+        cost_trace=torch.stack(solve.trace) if return_trace else None,
     )
 
 

@@ -165,7 +165,8 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
             ``auto``: up to :data:`AUTO_FRAMES`, all of a shorter clip; null = all; a number
             more than the clip has after ``start`` is an error), ``in_place`` (hold the
             root at its first-frame position and orientation: the person stands in place).
-        scenario: bundled scenario name or YAML path (see :func:`~torchmocap.data.load_scenario`).
+        scenario: bundled scenario name or YAML path
+            (:func:`~torchmocap.data.synthetic.load_scenario`).
         scenario_overrides: dotted or nested scenario keys to replace, e.g.
             ``{"imu.misalignment_deg": [5, 10], "body": "capsules"}``.
         seed: seed of the synthesis (an integer; 1.5 is an error, not seed 1).

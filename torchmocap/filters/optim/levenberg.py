@@ -6,7 +6,76 @@ from __future__ import annotations
 
 import torch
 
+from torchmocap.least_squares import DampedProblem, Marquardt, Verdict, damped_least_squares
+
 __all__ = ["levenberg_marquardt"]
+
+
+class _BoxNewton(DampedProblem):
+    """:func:`levenberg_marquardt`'s problems: a damped Newton step on the free variables
+    (Cholesky; a gradient step where the matrix is not positive definite), shortened to
+    ``max_step``, clamped into the box; stationary when the projected gradient vanishes."""
+
+    def __init__(self, derivs, x, lower, upper, gtol, ftol, max_step):
+        self.derivs, self.lower, self.upper = derivs, lower, upper
+        self.gtol, self.ftol, self.max_step = gtol, ftol, max_step
+        P = x.shape[0]
+        self.ids = torch.arange(P, device=x.device)
+        self.x = x
+        self.v, self.g, self.H = derivs(x, self.ids)
+        self.out_x, self.out_v, self.out_H = x.clone(), self.v.clone(), self.H.clone()
+        self.xtol = 1e3 * torch.finfo(x.dtype).eps
+
+    def stationary(self):
+        x, g = self.x, self.g
+        self.free = ~(((x <= self.lower) & (g > 0)) | ((x >= self.upper) & (g < 0)))
+        return (g * self.free).abs().amax(-1) <= self.gtol
+
+    def propose(self, mu, rows):
+        xa, ga, Ha, fa = self.x, self.g, self.H, self.free.to(self.x.dtype)
+        diag = Ha.diagonal(dim1=-2, dim2=-1)
+        # Marquardt scaling plus a small fixed Tikhonov term: a DoF the energy does not see
+        # (zero curvature, round-off gradient) takes no step instead of a huge one
+        lam = 1e-6 * diag.amax(-1, keepdim=True).clamp_min(1e-12)
+        A = Ha * fa[:, :, None] * fa[:, None, :] + torch.diag_embed(
+            (mu[:, None] * diag.clamp_min(0) + lam) * fa + (1 - fa))
+        L, info = torch.linalg.cholesky_ex(A)
+        rhs = -(ga * fa)[..., None]
+        step = torch.cholesky_solve(rhs, L)[..., 0]
+        bad = info != 0
+        if bool(bad.any()):  # indefinite (a non-Gauss-Newton Hessian): gradient step
+            step = torch.where(bad[:, None], -(ga * fa) / (diag.abs().amax(-1, keepdim=True)
+                                                          .clamp_min(1.0) * mu[:, None] + 1),
+                               step)
+        if self.max_step is not None:
+            big = step.abs().amax(-1, keepdim=True)
+            step = step * (self.max_step / big.clamp_min(self.max_step))
+        cand = torch.maximum(torch.minimum(xa + step, self.upper), self.lower)
+        return cand, self.derivs(cand, self.ids)
+
+    def assess(self, trial, mu, rows):
+        cand, (vc, _, _) = trial
+        xa, va = self.x, self.v
+        ok = torch.isfinite(vc) & (vc < va)
+        rel = (va - vc) / va.abs().clamp_min(1e-12)
+        tiny = (cand - xa).abs().amax(-1) <= self.xtol * (1 + xa.abs().amax(-1))
+        return Verdict(accepted=ok, converged=(ok & (rel < self.ftol)) | tiny)
+
+    def commit(self, trial, accepted, rows):
+        cand, (vc, gc, Hc) = trial
+        self.x = torch.where(accepted[:, None], cand, self.x)
+        self.v = torch.where(accepted, vc, self.v)
+        self.g = torch.where(accepted[:, None], gc, self.g)
+        self.H = torch.where(accepted[:, None, None], Hc, self.H)
+
+    def retire(self, done, ids):
+        sel = ids[done]
+        self.out_x[sel], self.out_v[sel], self.out_H[sel] = (self.x[done], self.v[done],
+                                                             self.H[done])
+
+    def keep(self, mask):
+        self.ids, self.x, self.v, self.g, self.H, self.free = (
+            t[mask] for t in (self.ids, self.x, self.v, self.g, self.H, self.free))
 
 
 def levenberg_marquardt(derivs, x0: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor,
@@ -31,52 +100,8 @@ def levenberg_marquardt(derivs, x0: torch.Tensor, lower: torch.Tensor, upper: to
     """
     x = torch.maximum(torch.minimum(x0.detach(), upper), lower)
     P, D = x.shape
-    dt, dev = x.dtype, x.device
-    v, g, H = derivs(x, torch.arange(P, device=dev))
-    mu = torch.full((P,), float(damping), dtype=dt, device=dev)
-    active = torch.ones(P, dtype=torch.bool, device=dev)
-    converged = torch.zeros(P, dtype=torch.bool, device=dev)
-    xtol = 1e3 * torch.finfo(dt).eps
-    its = 0
-    for _ in range(iterations):
-        free = ~(((x <= lower) & (g > 0)) | ((x >= upper) & (g < 0)))
-        pg = (g * free).abs().amax(-1)
-        done = pg <= gtol
-        converged = converged | (active & done)
-        active = active & ~done
-        if not bool(active.any()):
-            break
-        its += 1
-        ia = active.nonzero()[:, 0]
-        xa, ga, Ha, fa = x[ia], g[ia], H[ia], free[ia].to(dt)
-        diag = Ha.diagonal(dim1=-2, dim2=-1)
-        # Marquardt scaling plus a small fixed Tikhonov term: a DoF the energy does not see
-        # (zero curvature, round-off gradient) takes no step instead of a huge one
-        lam = 1e-6 * diag.amax(-1, keepdim=True).clamp_min(1e-12)
-        A = Ha * fa[:, :, None] * fa[:, None, :] + torch.diag_embed(
-            (mu[ia, None] * diag.clamp_min(0) + lam) * fa + (1 - fa))
-        L, info = torch.linalg.cholesky_ex(A)
-        rhs = -(ga * fa)[..., None]
-        step = torch.cholesky_solve(rhs, L)[..., 0]
-        bad = info != 0
-        if bool(bad.any()):  # indefinite (a non-Gauss-Newton Hessian): gradient step
-            step = torch.where(bad[:, None], -(ga * fa) / (diag.abs().amax(-1, keepdim=True)
-                                                          .clamp_min(1.0) * mu[ia, None] + 1),
-                               step)
-        if max_step is not None:
-            big = step.abs().amax(-1, keepdim=True)
-            step = step * (max_step / big.clamp_min(max_step))
-        cand = torch.maximum(torch.minimum(xa + step, upper), lower)
-        vc, gc, Hc = derivs(cand, ia)
-        ok = torch.isfinite(vc) & (vc < v[ia])
-        rel = (v[ia] - vc) / v[ia].abs().clamp_min(1e-12)
-        tiny = (cand - xa).abs().amax(-1) <= xtol * (1 + xa.abs().amax(-1))
-        x[ia] = torch.where(ok[:, None], cand, xa)
-        v[ia] = torch.where(ok, vc, v[ia])
-        g[ia] = torch.where(ok[:, None], gc, ga)
-        H[ia] = torch.where(ok[:, None, None], Hc, Ha)
-        mu[ia] = torch.where(ok, (mu[ia] / 3).clamp_min(1e-12), (mu[ia] * 4).clamp_max(1e12))
-        stop = (ok & (rel < ftol)) | tiny | (mu[ia] >= 1e10)
-        converged[ia] = converged[ia] | (ok & (rel < ftol)) | tiny
-        active[ia] = active[ia] & ~stop
-    return x, v, H, converged, its
+    prob = _BoxNewton(derivs, x, lower, upper, gtol, ftol, max_step)
+    run = damped_least_squares(prob, P, iterations,
+                               Marquardt(initial=float(damping), minimum=1e-12, maximum=1e12,
+                                         stall=1e10), device=x.device, dtype=x.dtype)
+    return prob.out_x, prob.out_v, prob.out_H, run.converged, run.iterations
