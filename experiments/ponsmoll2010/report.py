@@ -386,7 +386,7 @@ RUN_DIRS = {"body_fit": "fig8"}
 
 def _write_atomic(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` atomically (never a half-written table)."""
-    from torchmocap.io.atomic import atomic_path
+    from torchmocap.atomic import atomic_path
 
     with atomic_path(path) as tmp:
         tmp.write_text(text)

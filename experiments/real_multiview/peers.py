@@ -363,7 +363,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stop", type=int, default=None)
     ap.add_argument("--out", type=Path, default=OUT, help="the JSON written")
     args = ap.parse_args(argv)
-    from torchmocap.io.atomic import write_json_atomic
+    from torchmocap.atomic import write_json_atomic
 
     result = run_all(args.recording, args.start, args.stop)
     args.out.parent.mkdir(parents=True, exist_ok=True)

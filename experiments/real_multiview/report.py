@@ -339,7 +339,7 @@ def plot_heldout(peers: dict, tm: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from torchmocap.io.atomic import atomic_path
+    from torchmocap.atomic import atomic_path
 
     cams = peers["cameras"]
     cols = 2
@@ -382,7 +382,7 @@ def plot_bone_cv(peers: dict, tm: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from torchmocap.io.atomic import atomic_path
+    from torchmocap.atomic import atomic_path
 
     bones = [bone_name(b) for b in CV_BONES]
     methods = _methods_in_order(peers, tm)
@@ -408,7 +408,7 @@ def plot_bone_cv(peers: dict, tm: dict, path: Path) -> None:
 
 # ----------------------------------------------------------------------------- main
 def _write_atomic(path: Path, text: str) -> None:
-    from torchmocap.io.atomic import atomic_path
+    from torchmocap.atomic import atomic_path
 
     with atomic_path(path) as tmp:
         tmp.write_text(text)

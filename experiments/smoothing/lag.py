@@ -76,7 +76,7 @@ def main(argv=None) -> int:
         cells = [f"{np.mean([r[c][0] for r in rows]):.1f} / {np.mean([r[c][1] for r in rows]):.2f}"
                  for c in cols]
         lines.append(f"| {s} | `{t}` | {len(rows)} | " + " | ".join(cells) + " |")
-    from torchmocap.io.atomic import atomic_path
+    from torchmocap.atomic import atomic_path
 
     args.out.mkdir(parents=True, exist_ok=True)
     with atomic_path(args.out / "lag.md") as tmp:
@@ -94,7 +94,7 @@ def plot(groups: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from torchmocap.io.atomic import atomic_path
+    from torchmocap.atomic import atomic_path
 
     fig, ax = plt.subplots(figsize=(6, 3.6))
     xs = list(range(len(LAGS)))

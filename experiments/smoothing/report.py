@@ -130,7 +130,7 @@ def plot(rows: list[dict], path: Path) -> None:
         ax.set_ylabel("MPJPE (mm)")
     axes[0][0].legend(fontsize=8)
     fig.tight_layout()
-    from torchmocap.io.atomic import atomic_path
+    from torchmocap.atomic import atomic_path
 
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110)
@@ -139,7 +139,7 @@ def plot(rows: list[dict], path: Path) -> None:
 
 def _write_atomic(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` atomically (never a half-written table)."""
-    from torchmocap.io.atomic import atomic_path
+    from torchmocap.atomic import atomic_path
 
     with atomic_path(path) as tmp:
         tmp.write_text(text)

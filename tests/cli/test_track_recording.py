@@ -111,3 +111,24 @@ def test_console_masks_compute_without_keypoints_or_plates(shared_data, tmp_path
            "background plates" in r.stderr
     record = json.loads((tmp_path / "run" / "failure.json").read_text())
     assert record["error"].startswith("data.masks: compute needs")
+
+
+@pytest.mark.parametrize("data, tracker, presets", [
+    ("recording", "default", "real_keypoints | real_local | real_sir | real_mixture"),
+    ("recording", "p", "real_keypoints"),
+    ("bodytrack", "gs", "real_frame | real_frame_hull"),
+])
+def test_tracker_needing_imus_is_refused_before_loading(tmp_path, monkeypatch, data, tracker,
+                                                        presets):
+    """A tracker that reads IMUs cannot track a video recording: refused before a file is read
+    (a missing folder would fail later), naming the modality and the presets of that data."""
+    from torchmocap.data.recordings import loader
+
+    monkeypatch.setattr(loader, "discover_recording", lambda *a, **k: pytest.fail("loaded"))
+    cfg = _compose([f"data={data}", f"tracker={tracker}", f"data.path={tmp_path / 'none'}",
+                    "progress=false"])
+    with pytest.raises(ValueError, match=rf"tracker '{tracker}' needs 'imu' observations \(for "
+                                         rf".*\), which the data source .* never provides "
+                                         rf"\(it provides images, silhouettes.*\); track it "
+                                         rf"with tracker={presets}"):
+        run(cfg, tmp_path)

@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -18,6 +17,7 @@ from typing import Any
 import torch
 import yaml
 
+from torchmocap.atomic import write_text_atomic
 from torchmocap.cameras.rig import CameraError, CameraRig, _check_image_size
 
 __all__ = [
@@ -318,7 +318,8 @@ def load_rig_file(path: str | os.PathLike) -> Any:
 
 
 def write_rig(rig: CameraRig, path: str | os.PathLike) -> Path:
-    """Write a rig to ``.json`` or ``.yaml``/``.yml`` atomically (temp file + ``os.replace``)."""
+    """Write a rig to ``.json`` or ``.yaml``/``.yml`` atomically
+    (:func:`~torchmocap.atomic.write_text_atomic`)."""
     path = Path(path)
     data = rig_to_dict(rig)
     if path.suffix.lower() == ".json":
@@ -327,16 +328,4 @@ def write_rig(rig: CameraRig, path: str | os.PathLike) -> Path:
         text = yaml.safe_dump(data, sort_keys=False)
     else:
         raise CameraError(f"{path}: unsupported extension {path.suffix!r}; use .json or .yaml")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    return write_text_atomic(path, text)

@@ -314,7 +314,7 @@ def plot_table(table: SweepTable, out: str | Path, prefix: str = "aggregate") ->
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from torchmocap.io.atomic import atomic_path
+    from torchmocap.atomic import atomic_path
 
     out = Path(out)
     numeric = [k for k in table.columns
@@ -374,7 +374,7 @@ def aggregate_sweep(multirun_dir: str | Path, out: str | Path | None = None,
     Raises:
         SweepAggregateError: see :func:`find_jobs` and :func:`aggregate`.
     """
-    from torchmocap.io.atomic import atomic_path
+    from torchmocap.atomic import atomic_path
 
     if isinstance(over, str) or any(not isinstance(k, str) or not k for k in over):
         raise SweepAggregateError(f"over: expected a list of setting names, got {over!r}")

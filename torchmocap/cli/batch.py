@@ -31,12 +31,12 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from torchmocap.atomic import write_json_atomic
 from torchmocap.cli.runs import (
     completed_run,
     config_fingerprint,
     run_fingerprint,
 )
-from torchmocap.io.atomic import write_json_atomic
 
 __all__ = ["batch_fingerprint", "batch_seeds", "run_batch"]
 

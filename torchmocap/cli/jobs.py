@@ -9,8 +9,8 @@ import warnings
 from pathlib import Path
 from typing import Any
 
+from torchmocap.atomic import write_json_atomic
 from torchmocap.cli.runs import is_multirun
-from torchmocap.io.atomic import write_json_atomic
 
 __all__ = ["finish", "thread_policy", "validate_tracker"]
 
@@ -32,11 +32,15 @@ def thread_policy(cfg):
 def validate_tracker(cfg) -> None:
     """Build the tracker once against a stand-in subject (human31, four cameras, the paper's
     five tracking IMUs): a bad setting — also a particle count whose particle sets cannot fit
-    in memory — fails in a fraction of a second, before the data is loaded, fitted and
-    synthesised."""
+    in memory, or a tracker needing observations the data source never provides (IMUs of a
+    video recording, :func:`~torchmocap.data.sources.check_source_modalities`) — fails in a
+    fraction of a second, before the data is loaded, fitted and synthesised."""
+    from hydra.utils import get_object
+
     from torchmocap.assembly import Runtime, build_tracker
     from torchmocap.body import CapsuleBody
     from torchmocap.cameras import make_ring_rig
+    from torchmocap.data.sources import check_source_modalities
     from torchmocap.filters.tracking.tracker import check_seed, check_working_memory
     from torchmocap.ik import SensorManifold
     from torchmocap.skeleton import human31
@@ -49,6 +53,20 @@ def validate_tracker(cfg) -> None:
         warnings.simplefilter("ignore")
         tracker = build_tracker(cfg.tracker, stand_in, seed=seed)
     check_working_memory([tracker])
+    source = get_object(cfg.data._target_)
+    check_source_modalities(source, tracker.requires, tracker.name, _data_name(cfg),
+                            tracker.users_of)
+
+
+def _data_name(cfg) -> str:
+    """``data=<choice>`` of the run (the data source's target outside a Hydra run)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if HydraConfig.initialized():
+        choice = HydraConfig.get().runtime.choices.get("data")
+        if choice:
+            return f"data={choice}"
+    return f"the data source {cfg.data._target_}"
 
 
 def finish(cfg, out: Path, seq, runtime, tracker, track, fingerprint: str,

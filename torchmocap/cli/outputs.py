@@ -66,8 +66,8 @@ def _write_plots(out, seq, runtime, theta, arrays, cfg):
     import matplotlib.pyplot as plt
     import numpy as np
 
+    from torchmocap.atomic import atomic_path
     from torchmocap.evaluation import validation_bones
-    from torchmocap.io.atomic import atomic_path
 
     T = theta.shape[0]
     if "orientation_error_deg" in arrays:

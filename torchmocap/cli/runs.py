@@ -33,8 +33,8 @@ from typing import Any
 
 from hydra.experimental.callback import Callback
 
+from torchmocap.atomic import write_json_atomic
 from torchmocap.inputs import code_fingerprint, named_file_digests
-from torchmocap.io.atomic import write_json_atomic
 
 __all__ = [
     "USER_ERRORS",

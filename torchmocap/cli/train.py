@@ -33,8 +33,8 @@ def run(cfg: DictConfig, out: Path) -> dict:
     import torch
 
     from torchmocap.assembly import build
+    from torchmocap.atomic import write_json_atomic
     from torchmocap.filters.tracking.tracker import check_seed
-    from torchmocap.io.atomic import write_json_atomic
     from torchmocap.learning import NegativeSettings, load_clip_set
     from torchmocap.learning.trainer import EndToEndSettings, Trainer, TrainSettings
     from torchmocap.likelihoods.learned import LearnedLikelihood

@@ -111,9 +111,9 @@ def run(cfg: DictConfig, out: Path) -> dict:
     from hydra.utils import get_object
 
     from torchmocap.assembly import Runtime, build, load_sequence
+    from torchmocap.atomic import write_json_atomic
     from torchmocap.data import split_heldout
     from torchmocap.filters.tracking.tracker import check_seed, start_pose
-    from torchmocap.io.atomic import write_json_atomic
     from torchmocap.learning.keypoints import (
         KeypointTrainSettings,
         stack_detections,

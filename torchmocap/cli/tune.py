@@ -30,6 +30,7 @@ import hydra
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
+from torchmocap.atomic import write_json_atomic
 from torchmocap.cli.runs import (
     config_fingerprint,
     console_main,
@@ -38,7 +39,6 @@ from torchmocap.cli.runs import (
     read_json,
     write_failure,
 )
-from torchmocap.io.atomic import write_json_atomic
 
 __all__ = ["HeldOutReport", "evaluate_clips", "main"]
 
@@ -244,7 +244,7 @@ def heldout_report(config: DictConfig, root: Path) -> dict[str, Any] | None:
 
 
 def _write_markdown(report: dict[str, Any], path: Path) -> None:
-    from torchmocap.io.atomic import atomic_path
+    from torchmocap.atomic import atomic_path
 
     lines = [f"# Tuning report: {path.parent.name}", "",
              f"Objective: `{report['objective_key']}` ({report['direction']}), mean over the "

@@ -308,7 +308,7 @@ def write_glb(path: str | Path, skeleton: Any, thetas: Any, fps: float,
         >>> sk = human31()
         >>> write_glb("/tmp/walk.glb", sk, sk.zero_pose((10,)), fps=25.0)  # doctest: +SKIP
     """
-    from torchmocap.io.atomic import atomic_path
+    from torchmocap.atomic import atomic_path
 
     th = _check_track(skeleton, thetas, fps)
     skin = None

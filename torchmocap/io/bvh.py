@@ -16,9 +16,7 @@ with :meth:`MotionClip.from_skeleton`), atomically (temp file + rename).
 from __future__ import annotations
 
 import math
-import os
 import re
-import tempfile
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchmocap.atomic import write_text_atomic
 from torchmocap.io._euler import angles_to_matrix, matrix_to_angles
 from torchmocap.io.errors import MotionFormatError
 from torchmocap.io.motion import MotionClip, y_up_to_z_up, z_up_to_y_up
@@ -562,26 +561,7 @@ def write_bvh(
     for row in values.tolist():
         out.append(" ".join(_fmt(v, precision) for v in row))
     text = "\n".join(out) + "\n"
-    _atomic_write_text(path, text)
+    write_text_atomic(path, text)
     return path
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temp file in the same folder and ``os.replace``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        mask = os.umask(0)
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)  # mkstemp makes 0600; give the file the usual mode
-        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise

@@ -4,10 +4,10 @@ A checkpoint is a weights file (:func:`~torchmocap.likelihoods.learned.write_wei
 ``config``, ``state_dict``) with the training state beside it — optimiser and LR-schedule state,
 epoch, step, the data-order generator's state, the metrics so far and the training config — so
 ``weights=<checkpoint.pt>`` loads it into a tracker directly, and ``resume=<checkpoint.pt>``
-continues the training where it stopped. Files are written atomically (temporary file, then
-``os.replace``) and read with ``torch.load(weights_only=True)``; a checkpoint of another term
-or architecture raises :class:`~torchmocap.likelihoods.learned.ArchitectureMismatchError`
-naming every differing setting.
+continues the training where it stopped. Files are written atomically
+(:func:`~torchmocap.atomic.atomic_path`) and read with ``torch.load(weights_only=True)``; a
+checkpoint of another term or architecture raises
+:class:`~torchmocap.likelihoods.learned.ArchitectureMismatchError` naming every differing setting.
 """
 
 from __future__ import annotations

@@ -27,6 +27,7 @@ from typing import Any
 
 import torch
 
+from torchmocap.atomic import atomic_path
 from torchmocap.learning.checkpoints import load_checkpoint, save_checkpoint
 from torchmocap.learning.data import ClipData, pose_errors
 from torchmocap.learning.objectives import (
@@ -345,13 +346,11 @@ class Trainer:
         keys: list[str] = []
         for m in self.metrics:
             keys += [k for k in m if k not in keys]
-        tmp = self.out / "metrics.csv.tmp"
-        with open(tmp, "w", newline="") as fh:
+        with atomic_path(self.out / "metrics.csv") as tmp, open(tmp, "w", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=keys)
             w.writeheader()
             for m in self.metrics:
                 w.writerow(m)
-        os.replace(tmp, self.out / "metrics.csv")
 
     def _save(self, name: str) -> Path:
         return save_checkpoint(self.out / "checkpoints" / name, self.term,

@@ -17,7 +17,8 @@ Two terms ship (see :mod:`~torchmocap.likelihoods.learned_features` and
   ``torchmocap/assets/learned/``) or ``None`` (random initialisation — for training).
 
 Weights files are plain dicts of tensors, numbers and strings, written atomically (temporary
-file, then ``os.replace``) and read with ``torch.load(weights_only=True)``::
+file renamed into place, :func:`~torchmocap.atomic.atomic_path`) and read with
+``torch.load(weights_only=True)``::
 
     {"format": "torchmocap-learned-likelihood", "version": 1, "term": "<class name>",
      "config": {...}, "state_dict": {...}, ...}
@@ -140,14 +141,14 @@ def read_weights(path: str | os.PathLike) -> dict[str, Any]:
 
 
 def write_weights(path: str | os.PathLike, payload: Mapping[str, Any]) -> Path:
-    """Write ``payload`` (with ``term``, ``config``, ``state_dict``) atomically: a temporary
-    file beside ``path``, then ``os.replace``."""
+    """Write ``payload`` (with ``term``, ``config``, ``state_dict``) atomically
+    (:func:`~torchmocap.atomic.atomic_path`)."""
+    from torchmocap.atomic import atomic_path
+
     p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
     full = {"format": WEIGHTS_FORMAT, "version": WEIGHTS_VERSION, **payload}
-    tmp = p.with_name(p.name + ".tmp")
-    torch.save(full, tmp)
-    os.replace(tmp, p)
+    with atomic_path(p, durable=True) as tmp:
+        torch.save(full, tmp)
     return p
 
 

@@ -10,8 +10,6 @@ revolute DoFs are exported as ``continuous`` joints.
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -74,16 +72,9 @@ def skeleton_to_urdf(skeleton: Skeleton) -> str:
 
 def write_urdf(skeleton: Skeleton, path: str | Path) -> Path:
     """Write the URDF of ``skeleton`` to ``path`` atomically (temp file, then rename)."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(skeleton_to_urdf(skeleton))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    from torchmocap.atomic import write_text_atomic
+
+    return write_text_atomic(path, skeleton_to_urdf(skeleton))
 
 
 def to_pytorch_kinematics_chain(skeleton: Skeleton, dtype=torch.float32, device="cpu"):

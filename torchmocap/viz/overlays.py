@@ -317,7 +317,7 @@ def _legend(truth: bool, detections: bool) -> list[tuple[str, tuple[int, int, in
 
 def write_overlay_grid(path: str | Path, grid: np.ndarray) -> Path:
     """Save an overlay grid (``(H, W, 3)`` uint8) as an image, atomically."""
-    from torchmocap.io.atomic import atomic_path
+    from torchmocap.atomic import atomic_path
 
     arr = np.asarray(grid)
     if arr.ndim != 3 or arr.shape[-1] != 3 or arr.dtype != np.uint8:

@@ -70,7 +70,7 @@ def _check_fps(fps: float) -> float:
 def write_gif(path: str | Path, frames: Iterable[np.ndarray], fps: float) -> Path:
     """Animated GIF (looping) of ``(H, W, 3)`` uint8 frames at ``fps`` (GIF timing is in
     1/100 s; players slow down frames shorter than 20 ms, so keep ``fps <= 50``)."""
-    from torchmocap.io.atomic import atomic_path
+    from torchmocap.atomic import atomic_path
 
     fps = _check_fps(fps)
     images: list[Image.Image] = []
@@ -98,7 +98,7 @@ def write_mp4(path: str | Path, frames: Iterable[np.ndarray], fps: float,
         FileNotFoundError: no ffmpeg executable (``ffmpeg``) was given or found.
         OSError: ffmpeg failed (its last lines of output are in the message).
     """
-    from torchmocap.io.atomic import atomic_path
+    from torchmocap.atomic import atomic_path
 
     fps = _check_fps(fps)
     exe = ffmpeg or ffmpeg_executable()

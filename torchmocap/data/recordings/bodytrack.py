@@ -22,6 +22,7 @@ from pathlib import Path
 
 import torch
 
+from torchmocap.data.sources import data_source
 from torchmocap.data.subjects.recorded import SCALE_RANGE
 
 __all__ = ["SCALE_RANGE", "load_bodytrack", "load_bodytrack_sequence"]
@@ -101,6 +102,7 @@ def _numbers(rig) -> list[str]:
     return [n.removeprefix("Camera") for n in rig.names]
 
 
+@data_source(provides=("images", "silhouettes", "rig"), trackers=("real_frame", "real_frame_hull"))
 def load_bodytrack_sequence(path: str | Path, scale: float = 1.0, headings: int = 12,
                             voxel: float = 0.04, seed: int = 0):
     """One bodytrack frame as a :class:`~torchmocap.data.Sequence` (``scenario="recorded"``).

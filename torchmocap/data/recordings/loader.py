@@ -50,6 +50,7 @@ from torchmocap.data.recordings.mask_source import (
     recording_masks,
 )
 from torchmocap.data.recordings.person_selection import person_agreement, select_person
+from torchmocap.data.sources import data_source
 from torchmocap.data.subjects.recorded import hull_start, keypoint_start, subject_settings
 from torchmocap.io.frames import (
     IMAGE_SUFFIXES,
@@ -274,6 +275,8 @@ def _load_keypoints(source: KeypointSource, request: KeypointRequest, kp: dict[s
     return _scale_joints(joints, scale).float(), fmt, selection, det.report
 
 
+@data_source(provides=("images", "silhouettes", "joints2d", "rig"),
+             trackers=("real_keypoints", "real_local", "real_sir", "real_mixture"))
 def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | None = None,
                    start: int = 0, stop: int | None = None, stride: int = 1,
                    scale: float = 0.5, keypoints: Mapping[str, Any] | None = None,

@@ -259,7 +259,7 @@ class Tracker(nn.Module):
         have = sequence.modalities
         for m in self.requires:
             if m not in have:
-                users = self._users_of(m)
+                users = self.users_of(m)
                 raise MissingObservationError(
                     f"tracker {self.name!r} needs {m!r} observations (for {', '.join(users)}); "
                     f"the sequence has {', '.join(have) or 'none'}")
@@ -268,7 +268,7 @@ class Tracker(nn.Module):
                 f"tracker {self.name!r} needs tracking IMUs, but none of the sequence's sensors "
                 "is a tracking sensor")
 
-    def _users_of(self, modality: str) -> list[str]:
+    def users_of(self, modality: str) -> list[str]:
         """``"path (Class)"`` of the innermost components that read ``modality``."""
         out = []
         for path, mod in self.named_modules():
@@ -515,7 +515,7 @@ class Tracker(nn.Module):
                         ) -> None:
         """Atomically write the state, and every :class:`~torchmocap.stateful.Stateful`
         component's own (the sensor calibration, a fitted body), to ``path``."""
-        from torchmocap.io.atomic import atomic_path
+        from torchmocap.atomic import atomic_path
 
         payload = {"format": "torchmocap-track-checkpoint", "version": CHECKPOINT_VERSION,
                    "state": state.to_dict(), "name": self.name, "seed": self.seed,

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 from torch import Tensor
 
-from torchmocap.io.atomic import atomic_path
+from torchmocap.atomic import atomic_path
 
 __all__ = ["mask_preview", "write_mask_preview"]
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from torchmocap.io.atomic import atomic_path
+from torchmocap.atomic import atomic_path
 
 
 def test_smoke(tmp_path):

@@ -17,16 +17,18 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-__all__ = ["atomic_path", "write_json_atomic"]
+__all__ = ["atomic_path", "write_json_atomic", "write_text_atomic"]
 
 
 @contextmanager
-def atomic_path(path: str | os.PathLike, mode: int = 0o644) -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike, mode: int = 0o644, durable: bool = False
+                ) -> Iterator[Path]:
     """Yield a temporary path in ``path``'s directory; on success it replaces ``path``.
 
     The temporary file keeps ``path``'s suffix last (``.name.XXXX.tmp.png``) so writers that
     pick a format from the suffix (PIL, ffmpeg) still work. On an exception the temporary file
-    is removed and ``path`` is left as it was.
+    is removed and ``path`` is left as it was. ``mode``: the file's permissions; ``durable``:
+    flush the file to disk before the rename (a power cut leaves the old or the new file).
 
     Example:
         >>> with atomic_path("/tmp/x.txt") as tmp:  # doctest: +SKIP
@@ -41,10 +43,24 @@ def atomic_path(path: str | os.PathLike, mode: int = 0o644) -> Iterator[Path]:
     try:
         yield tmp
         os.chmod(tmp, mode)
+        if durable:
+            fd = os.open(tmp, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def write_text_atomic(path: str | os.PathLike, text: str, durable: bool = True) -> Path:
+    """Write ``text`` (UTF-8, ``\\n`` line ends) to ``path`` atomically (:func:`atomic_path`);
+    returns the path."""
+    with atomic_path(path, durable=durable) as tmp:
+        tmp.write_text(text, encoding="utf-8", newline="\n")
+    return Path(path)
 
 
 def write_json_atomic(obj: Any, path: str | os.PathLike) -> None:
