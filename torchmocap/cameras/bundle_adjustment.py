@@ -143,14 +143,24 @@ class BundleAdjustmentResult:
     settings: dict[str, Any] = field(default_factory=dict)
 
     def poorly_determined(self) -> list[str]:
-        """Names ``"<camera>.<value>"`` of refined values whose posterior std exceeds
-        :data:`PRIOR_DOMINATED` × their prior width (the prior, not the data, set them)."""
+        """Names ``"<camera>.<value>"`` of refined values the data did not determine: their
+        posterior std exceeds :data:`PRIOR_DOMINATED` × their prior width (the prior, not the
+        subject, held them), or, without a prior, that fraction of the default prior width
+        (:class:`~torchmocap.cameras.RigPriors`: 5°, 0.25 m, 5 %, 20 px, 0.05, 2 frames). A
+        shared focal scale is named ``log_f``."""
+        shared = "focal" in self.parametrization.groups
+        default = RigPriors().value_widths()
         out = []
         for c, name in enumerate(self.rig.names):
             for v in range(NUM_VALUES):
+                if shared and v == 7:
+                    continue
                 s, w = float(self.std[c, v]), float(self.prior_width[c, v])
-                if math.isfinite(s) and math.isfinite(w) and s > PRIOR_DOMINATED * w:
-                    out.append(f"{name}.{PARAMETER_NAMES[v]}")
+                if not math.isfinite(w):
+                    w = default[v]
+                if math.isfinite(s) and s > PRIOR_DOMINATED * w:
+                    label = "log_f" if shared and v == 6 else PARAMETER_NAMES[v]
+                    out.append(f"{name}.{label}")
         return out
 
     def correlation(self) -> Tensor:
@@ -228,9 +238,11 @@ class _Problem:
     """The bundle adjustment's data, residuals and normal equations (float64)."""
 
     def __init__(self, par: RigParametrization, uv: Tensor, weight: Tensor, loss: RobustLoss,
-                 widths: Tensor, temporal: bool) -> None:
+                 widths: Tensor, temporal: bool, smoothing: float = 0.0) -> None:
         self.par, self.uv, self.weight, self.loss = par, uv, weight, loss
         self.widths = widths
+        #: weight 1 / σ_a² of the trajectory's second differences (m/frame²; 0 = none)
+        self.smoothing = smoothing
         self.temporal = temporal
         self.T, self.C, self.K = uv.shape[:3]
         self.M = par.value_map()  # (C, 13, n_y)
@@ -260,13 +272,20 @@ class _Problem:
         taps = self.taps(values) if self.temporal else None
         return self.pixels(values, self.observed(X, taps)) - self.uv
 
-    def cost(self, y: Tensor, r: Tensor, sigma: float) -> float:
+    def acceleration(self, X: Tensor) -> Tensor:
+        """Second differences of the trajectories ``(T − 2, K, 3)``."""
+        return X[2:] - 2 * X[1:-1] + X[:-2]
+
+    def cost(self, y: Tensor, X: Tensor, r: Tensor, sigma: float) -> float:
         s = (r * r).sum(-1)
         used = self.weight > 0
         data = 0.5 * (self.weight * self.loss.rho(torch.where(used, s, torch.zeros_like(s)))
                       ).sum() / sigma ** 2
         z = self.par.basis @ y
-        return float(data + 0.5 * ((z / self.widths) ** 2).sum())
+        total = data + 0.5 * ((z / self.widths) ** 2).sum()
+        if self.smoothing:
+            total = total + 0.5 * self.smoothing * (self.acceleration(X) ** 2).sum()
+        return float(total)
 
     # ----------------------------------------------------------------- linearisation
     def linearise(self, y: Tensor, X: Tensor):
@@ -297,8 +316,8 @@ class _Problem:
         J_y = torch.einsum("tckap,cpy->tckay", J_v, self.M[:, idx, :])
         return pix - self.uv, J_y, J_X, taps
 
-    def normal_equations(self, y: Tensor, r: Tensor, J_y: Tensor, J_X: Tensor, taps,
-                         sigma: float):
+    def normal_equations(self, y: Tensor, X: Tensor, r: Tensor, J_y: Tensor, J_X: Tensor,
+                         taps, sigma: float):
         """``H_yy, g_y`` (priors included), and the point blocks ``H_pp (G, m, m)``,
         ``H_py (G, m, n_y)``, ``g_p (G, m)``."""
         s = (r * r).sum(-1)
@@ -333,6 +352,14 @@ class _Problem:
         src = (w.reshape(C, T, 1, 4, 1) * e.unsqueeze(3)).permute(2, 0, 1, 3, 4)
         g_p = torch.zeros(K, T, 3, dtype=r.dtype, device=r.device).index_add_(
             1, single, src.reshape(K, -1, 3)).reshape(K, 3 * T)
+        if self.smoothing:
+            D = torch.zeros(T - 2, T, dtype=r.dtype, device=r.device)
+            i = torch.arange(T - 2, device=r.device)
+            D[i, i], D[i, i + 1], D[i, i + 2] = 1.0, -2.0, 1.0
+            DtD = self.smoothing * (D.T @ D)
+            eye = torch.eye(3, dtype=r.dtype, device=r.device)
+            H_pp = H_pp + torch.kron(DtD, eye)
+            g_p = g_p + torch.einsum("fg,gki->kfi", DtD, X).reshape(K, 3 * T)
         return H_yy, g_y, H_pp, H_py, g_p
 
     def point_step(self, dp: Tensor) -> Tensor:
@@ -391,7 +418,7 @@ def _levenberg_marquardt(prob: _Problem, y: Tensor, X: Tensor, sigma: float, max
     """Damped Gauss–Newton on the Schur-reduced system: ``y, X, iterations, converged,
     message``."""
     r = prob.residuals(y, X)
-    cost = prob.cost(y, r, sigma)
+    cost = prob.cost(y, X, r, sigma)
     lam = 1e-3
     nu = 2.0
     converged, message, it = False, "maximum iterations reached", 0
@@ -401,7 +428,7 @@ def _levenberg_marquardt(prob: _Problem, y: Tensor, X: Tensor, sigma: float, max
         it += 1
         if relinearise:
             r, J_y, J_X, taps = prob.linearise(y, X)
-            system = prob.normal_equations(y, r, J_y, J_X, taps, sigma)
+            system = prob.normal_equations(y, X, r, J_y, J_X, taps, sigma)
         S, b, Hi_py, Hi_gp = _reduced_system(*system, lam)
         dy = -_solve(S, b)
         dp = -(Hi_gp + torch.einsum("gmy,y->gm", Hi_py, dy))
@@ -409,7 +436,8 @@ def _levenberg_marquardt(prob: _Problem, y: Tensor, X: Tensor, sigma: float, max
         ok = True
         if max_time_offset is not None:
             ok = bool((prob.par.values(y_new)[:, 12].abs() <= max_time_offset).all())
-        new_cost = prob.cost(y_new, prob.residuals(y_new, X_new), sigma) if ok else math.inf
+        new_cost = prob.cost(y_new, X_new, prob.residuals(y_new, X_new), sigma) if ok \
+            else math.inf
         if math.isfinite(new_cost) and new_cost < cost:
             decrease = (cost - new_cost) / max(cost, 1e-300)
             y, X, cost = y_new, X_new, new_cost
@@ -431,8 +459,9 @@ def bundle_adjust(detections: Tensor, rig: CameraRig, groups: Sequence[str] = DE
                   frames: range | tuple[int, int] | None = None,
                   priors: RigPriors | dict | None = None, loss: RobustLoss | dict | None = None,
                   gauge: str | int = "mean", time_gauge: str | int = "mean",
-                  max_time_offset: float = 5.0, noise_px: float | None = None,
-                  max_iterations: int = 100, tolerance: float = 1e-10,
+                  max_time_offset: float = 5.0, fps: float | None = None,
+                  trajectory_acceleration: float | None = 50.0, noise_px: float | None = None,
+                  max_iterations: int = 200, tolerance: float = 1e-8,
                   min_detections: int = 20) -> BundleAdjustmentResult:
     """Refine a rig (and per-camera time offsets) from the subject's 2D detections.
 
@@ -451,6 +480,13 @@ def bundle_adjust(detections: Tensor, rig: CameraRig, groups: Sequence[str] = DE
             (:mod:`torchmocap.cameras.rig_gauge`).
         max_time_offset: bound on ``|δ_c|`` in frames (a step beyond it is refused); must be
             smaller than the refined frames less one.
+        fps: the frame rate (needed with time offsets and a ``trajectory_acceleration``).
+        trajectory_acceleration: with time offsets refined, a Gaussian prior on the 3D
+            trajectories' accelerations (second differences × fps², std in m/s²; default 50,
+            what a kick reaches). Per-frame points free of it follow the detections' jitter,
+            and an offset would then be fitted to that jitter (its "velocity"), not to the
+            subject's motion, with a confidence nothing supports. None: no prior (points free
+            per frame). Unused without time offsets (the points are free per frame).
         noise_px: σ, the detections' noise in pixels; None = measured from the residuals
             (their median distance / 1.18, the Rayleigh median, corrected for the degrees of
             freedom the fit takes; at least 0.01 px): first at the DLT start, then at the
@@ -518,6 +554,15 @@ def bundle_adjust(detections: Tensor, rig: CameraRig, groups: Sequence[str] = DE
             raise RefinementError(f"max_time_offset: a bound of {max_time_offset:g} frames is "
                                   f"not smaller than the {T} refined frames less one")
         priors.check_time(T)
+        if trajectory_acceleration is not None:
+            _number(trajectory_acceleration, "trajectory_acceleration",
+                    "an acceleration std in m/s^2 > 0 (or None)", lambda v: v > 0)
+            if fps is None:
+                raise RefinementError(
+                    "fps: refining time offsets puts a prior on the trajectories' "
+                    "accelerations (trajectory_acceleration, m/s^2), which needs the frame "
+                    "rate; pass fps (or trajectory_acceleration=None)")
+            _number(fps, "fps", "a frame rate > 0", lambda v: v > 0)
 
     det = detections[span.start:span.stop].to(torch.float64)
     uv, conf = det[..., :2], det[..., 2]
@@ -550,7 +595,10 @@ def bundle_adjust(detections: Tensor, rig: CameraRig, groups: Sequence[str] = DE
                               f"{unknowns} unknowns (cameras and 3D points)")
 
     widths = priors.widths(par)
-    prob = _Problem(par, uv, weight, loss, widths, temporal)
+    smoothing = 0.0
+    if temporal and trajectory_acceleration is not None:
+        smoothing = (float(fps) ** 2 / float(trajectory_acceleration)) ** 2
+    prob = _Problem(par, uv, weight, loss, widths, temporal, smoothing)
     y = torch.zeros(par.num_parameters, dtype=torch.float64, device=dev)
     X = X0.clone()
     r_before = prob.residuals(y, X)
@@ -572,12 +620,12 @@ def bundle_adjust(detections: Tensor, rig: CameraRig, groups: Sequence[str] = DE
             sigma = new_sigma
             break
         sigma = new_sigma
-    cost0 = prob.cost(torch.zeros_like(y), r_before, sigma)
-    cost = prob.cost(y, prob.residuals(y, X), sigma)
+    cost0 = prob.cost(torch.zeros_like(y), X0, r_before, sigma)
+    cost = prob.cost(y, X, prob.residuals(y, X), sigma)
 
     # uncertainty at the solution: IRLS weights, residuals whitened by the measured noise
     r, J_y, J_X, taps = prob.linearise(y, X)
-    H_yy, g_y, H_pp, H_py, g_p = prob.normal_equations(y, r, J_y, J_X, taps, sigma)
+    H_yy, g_y, H_pp, H_py, g_p = prob.normal_equations(y, X, r, J_y, J_X, taps, sigma)
     S, _, _, _ = _reduced_system(H_yy, g_y, H_pp, H_py, g_p, 0.0)
     L, info = torch.linalg.cholesky_ex(S)
     cov_y = torch.cholesky_inverse(L) if int(info) == 0 else torch.linalg.pinv(S)
@@ -596,6 +644,7 @@ def bundle_adjust(detections: Tensor, rig: CameraRig, groups: Sequence[str] = DE
         "groups": list(par.groups), "frames": [span.start, span.stop],
         "priors": priors.to_dict(), "loss": loss.to_dict(), "gauge": gauge,
         "time_gauge": time_gauge, "max_time_offset": float(max_time_offset) if temporal
+        else None, "fps": fps, "trajectory_acceleration": trajectory_acceleration if temporal
         else None, "noise_px": noise_px, "max_iterations": max_iterations,
         "tolerance": tolerance, "min_detections": min_detections,
     }
