@@ -221,8 +221,8 @@ def interpolate_in_time(points: Tensor, times: Tensor) -> Tensor:
 
     Example:
         >>> X = torch.arange(6.0).reshape(6, 1, 1).expand(6, 1, 3)     # x = frame
-        >>> interpolate_in_time(X, torch.tensor([0.5, 2.25, 6.0]))[:, 0, 0].tolist()
-        [0.5, 2.25, 6.0]
+        >>> tuple(interpolate_in_time(X, torch.tensor([0.5, 2.25, 6.0]))[:, 0, 0].tolist())
+        (0.5, 2.25, 6.0)
     """
     if not isinstance(points, Tensor) or points.dim() != 3 or points.shape[-1] != 3:
         raise RefinementError(f"points: expected shape (T, K, 3), got "

@@ -139,8 +139,8 @@ def apply_rig_parameters(values: Tensor, K: Tensor, R: Tensor, t: Tensor, dist: 
         >>> v = torch.zeros(2, 13, dtype=torch.float64)
         >>> v[:, 6:8] = torch.tensor(1.1, dtype=torch.float64).log()   # focal +10 %
         >>> K, R, t, d = apply_rig_parameters(v, rig.K, rig.R, rig.t, rig.dist)
-        >>> [round(x, 9) for x in (K[:, 0, 0] / rig.K[:, 0, 0]).tolist()]
-        [1.1, 1.1]
+        >>> tuple(round(x, 9) for x in (K[:, 0, 0] / rig.K[:, 0, 0]).tolist())
+        (1.1, 1.1)
     """
     C = K.shape[0]
     if values.shape != (C, NUM_VALUES):

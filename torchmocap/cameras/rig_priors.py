@@ -17,8 +17,8 @@ Example:
     >>> from torchmocap.cameras import make_ring_rig
     >>> from torchmocap.cameras.rig_parameters import RigParametrization
     >>> par = RigParametrization(make_ring_rig(2), ("rotation", "focal"), gauge="none")
-    >>> [round(w, 6) for w in RigPriors(rotation_deg=2.0).widths(par)[[0, 3]].tolist()]
-    [0.034907, 0.04879]
+    >>> tuple(round(w, 6) for w in RigPriors(rotation_deg=2.0).widths(par)[[0, 3]].tolist())
+    (0.034907, 0.04879)
 """
 
 from __future__ import annotations
