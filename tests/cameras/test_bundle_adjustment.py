@@ -245,6 +245,7 @@ class TestBundleAdjust:
             (dict(frames="all"), r"frames: expected \(start, stop\)"),
             (dict(groups=("rotation", "zoom")), "groups: unknown parameter group 'zoom'"),
             (dict(groups=("focal", "focal_xy")), "groups: 'focal'"),
+            (dict(groups=3), "groups: expected a sequence of group names"),
             (dict(groups=TIME_GROUPS, fps=30.0, max_time_offset=7.0),
              "max_time_offset: a bound of 7 frames is not smaller than the 8 refined frames"),
             (dict(groups=TIME_GROUPS, fps=30.0, priors=dict(time_offset_frames=9.0)),

@@ -33,6 +33,10 @@ class TestRefinementReport:
         assert rep["settings"]["groups"] == ["rotation", "translation", "focal",
                                              "principal_point", "time_offset"]
         assert res.report() == rep
+        corr = res.correlation().reshape(4, 13, 4, 13)
+        refined = ~torch.isnan(res.std)
+        diag = torch.stack([corr[c, v, c, v] for c in range(4) for v in range(13)]).reshape(4, 13)
+        torch.testing.assert_close(diag[refined], torch.ones_like(diag[refined]))
 
     def test_feature_values(self, result):
         sc, res = result

@@ -214,6 +214,13 @@ class TestRigRefinement:
             m.parametrization.free_values(v), m.priors.widths(m.parametrization))
         torch.testing.assert_close(m(X, det), want)
         assert m.rig().num_cameras == 3 and m.time_offsets().shape == (3,)
+        # float32 points (a float32 model's keypoints): the loss is promoted, the gradient
+        # reaches them in their dtype
+        X32 = X.float().requires_grad_()
+        m(X32, det).backward()
+        assert X32.grad.dtype == torch.float32 and bool(torch.isfinite(X32.grad).all())
+        m32 = RigRefinement(rig.float(), groups=("rotation",)).float()
+        assert m32(X.float(), det.float()).dtype == torch.float32
 
     def test_feature_gradient_descent_refines(self):
         """Adam on the module's parameters brings a rotated camera back (gradient-based use

@@ -530,7 +530,6 @@ def bundle_adjust(detections: Tensor, rig: CameraRig, groups: Sequence[str] = DE
         raise RefinementError("detections: confidences must be >= 0")
     span = check_frames(frames, detections.shape[0])
     T = len(span)
-    groups = tuple(groups) if not isinstance(groups, str) else (groups,)
     check_gauge(gauge, C, "gauge")
     check_gauge(time_gauge, C, "time_gauge")
     priors = RigPriors.from_dict(priors)

@@ -246,9 +246,12 @@ def refinement_pixels(points: Tensor, K: Tensor, R: Tensor, t: Tensor, dist: Ten
         per_camera: whether ``points`` has a leading camera dim.
 
     Returns:
-        ``(T, C, K, 2)`` pixels (u, v); depth clamped at 1e-6 (points behind a camera get
-        finite pixels).
+        ``(T, C, K, 2)`` pixels (u, v) in the promoted dtype of ``points`` and the cameras;
+        depth clamped at 1e-6 (points behind a camera get finite pixels).
     """
+    dt = torch.promote_types(points.dtype, R.dtype)
+    if points.dtype != dt or R.dtype != dt:
+        points, K, R, t, dist = (x.to(dt) for x in (points, K, R, t, dist))
     if per_camera:
         pc = torch.einsum("cij,ctkj->tcki", R, points) + t[None, :, None, :]
     else:
