@@ -205,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"({run['seconds']:.1f} s)")
     command = "OMP_NUM_THREADS=1 python experiments/real_multiview/calibration_refinement.py" + (
         "" if argv is None or not argv else " " + " ".join(argv))
-    from torchmocap.io.atomic import atomic_path
+    from torchmocap.atomic import atomic_path
 
     args.out.mkdir(parents=True, exist_ok=True)
     with atomic_path(args.out / "calibration_refinement.md") as tmp:

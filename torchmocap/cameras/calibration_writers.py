@@ -11,7 +11,7 @@
 * :func:`write_calibration` picks the writer from the path, like
   :func:`~torchmocap.cameras.read_calibration`.
 
-Every file is written atomically (:func:`torchmocap.io.atomic.atomic_path`); numbers are written
+Every file is written atomically (:func:`torchmocap.atomic.atomic_path`); numbers are written
 with Python's shortest round-trip representation, so a rig read back is the rig written (to
 the float64 rounding of the Rodrigues conversion, ~1e-15).
 
@@ -134,7 +134,7 @@ def write_toml_calibration(rig: CameraRig, path: str | os.PathLike, unit: str | 
                 raise CameraError(f"metadata: {k} = {v!r} is not a number, bool or string")
             lines.append(f"{k} = {text}")
         lines.append("")
-    from torchmocap.io.atomic import atomic_path
+    from torchmocap.atomic import atomic_path
 
     path = Path(path)
     with atomic_path(path) as tmp:
@@ -184,7 +184,7 @@ def write_opencv_calibration(rig: CameraRig, folder: str | os.PathLike, unit: st
         extri += _matrix_node(f"R_{n}", 3, 1, rvecs[c].tolist())
         extri += _matrix_node(f"Rot_{n}", 3, 3, rig.R[c].double().reshape(-1).tolist())
         extri += _matrix_node(f"T_{n}", 3, 1, (rig.t[c].double() / scale).tolist())
-    from torchmocap.io.atomic import atomic_path
+    from torchmocap.atomic import atomic_path
 
     folder = Path(folder)
     paths = (folder / f"intri{suffix}", folder / f"extri{suffix}")
