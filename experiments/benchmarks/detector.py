@@ -12,6 +12,9 @@
   the detector's own previous frame (started from OpenPose's box at frame 0).
 * bodytrack_sequenceB_1 (the vendored copy under tests/data_files): mask IoU (probability >
   0.5) against the shipped FG masks of the 4 views, and the share of landmarks inside them.
+* where MediaPipe's keypoints lie relative to OpenPose's (the basis of the mediapipe_33
+  keypoint map): both detectors' keypoints triangulated across the 4 views (DLT, the box from
+  OpenPose), medians over the frames of widths, heights and distances.
 * time per frame of ``MediaPipePoseDetector.detect`` (crop, model, mapping back), and of a
   :func:`~torchmocap.detectors.cached_detections` run that reads every frame from the cache.
 
@@ -146,6 +149,61 @@ def bodytrack(det: MediaPipePoseDetector) -> dict:
     return out
 
 
+def triangulated(landmarks: dict, frames: int) -> dict:
+    """Medians (metres) over the frames of where MediaPipe's triangulated keypoints lie
+    relative to OpenPose's: widths, height differences (world z up) and distances."""
+    from torchmocap.cameras import read_calibration
+    from torchmocap.cameras.triangulation import triangulate_dlt
+
+    cams = ("cam01", "cam02", "cam03", "cam04")
+    rig = read_calibration(P2S / "calibration" / "Calib.toml").double()
+    mp = torch.tensor(np.stack([landmarks[c]["box_openpose"] for c in cams], 1))  # T C 33 3
+    op = []
+    for t in range(frames):
+        row = []
+        for c in cams:
+            x = read_openpose_json(P2S / "pose-associated" / f"{c}_json" / f"{c}.{t:04d}.json", 25)
+            row.append(x[0] if len(x) else torch.zeros(25, 3, dtype=torch.float64))
+        op.append(torch.stack(row))
+    op = torch.stack(op)
+
+    def tri(x, min_conf):
+        w = torch.nan_to_num(x[..., 2])
+        return triangulate_dlt(torch.nan_to_num(x[..., :2]), torch.where(w > min_conf, w, 0 * w),
+                               rig)
+
+    X, Y = tri(mp, 0.5), tri(op, 0.3)
+    m = lambda n: X[:, MP.index(n)]  # noqa: E731
+    o = lambda n: Y[:, OP.index(n)]  # noqa: E731
+
+    def med(v):
+        v = v[torch.isfinite(v)]
+        return round(float(v.median()), 4)
+
+    def dist(a, b):
+        return (a - b).norm(dim=-1)
+
+    out = {}
+    for pair in ("Hip", "Shoulder", "Ear", "Eye"):
+        out[f"{pair.lower()} width mediapipe / openpose"] = (
+            med(dist(m("L" + pair), m("R" + pair))), med(dist(o("L" + pair), o("R" + pair))))
+    for n in ("LShoulder", "RShoulder", "LHip", "RHip", "LWrist", "RWrist", "LKnee", "RKnee",
+              "LAnkle", "RAnkle", "LHeel", "RHeel"):
+        out[f"{n}: distance, z of mediapipe - openpose"] = (med(dist(m(n), o(n))),
+                                                            med((m(n) - o(n))[:, 2]))
+    for s in "LR":
+        out[f"{s}Heel from {s}Ankle (distance, z), mediapipe"] = (
+            med(dist(m(s + "Heel"), m(s + "Ankle"))), med((m(s + "Heel") - m(s + "Ankle"))[:, 2]))
+        out[f"{s}FootIndex from {s}Ankle / openpose {s}BigToe from {s}Ankle"] = (
+            med(dist(m(s + "FootIndex"), m(s + "Ankle"))), med(dist(o(s + "BigToe"),
+                                                                   o(s + "Ankle"))))
+        for n in ("Pinky", "Index", "Thumb"):
+            out[f"{s}{n} from {s}Wrist, mediapipe"] = med(dist(m(s + n), m(s + "Wrist")))
+    for k, v in out.items():
+        print(f"  {k}: {v}")
+    return out
+
+
 def cache_timing(frames: int) -> dict:
     """One camera through cached_detections: computing (and writing) every frame, then a
     second run that reads them all."""
@@ -179,6 +237,8 @@ def main() -> None:
     res = {"build_s": build, "cores": len(os.sched_getaffinity(0)),
            "bodytrack": bodytrack(det)}
     res["pose2sim"], lms = pose2sim(det, args.frames)
+    print("triangulated (metres):")
+    res["triangulated"] = triangulated(lms, args.frames)
     res["cache"] = cache_timing(min(args.frames, 30))
     print(json.dumps(res["cache"]))
     if args.out:

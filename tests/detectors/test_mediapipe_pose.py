@@ -10,7 +10,11 @@ FG3/FG4 hold noise far from the person); median 6-19 px from OpenPose's body key
 
 from __future__ import annotations
 
+import os
+import shutil
 import socket
+import subprocess
+import sys
 import urllib.request
 
 import numpy as np
@@ -141,6 +145,28 @@ class TestMediaPipePose:
         for complexity in (0, 2):  # mediapipe would download these models
             with pytest.raises(DetectorSettingsError, match=r"model_complexity: only 1"):
                 MediaPipePoseDetector(model_complexity=complexity)
+
+    def test_no_download_without_network(self, data_file):
+        """In a process without a network (its own network namespace), the detector builds
+        and finds the person: nothing it runs, Python or C++, needs the internet."""
+        require_mediapipe()
+        exe = shutil.which("unshare")
+        if exe is None or subprocess.run([exe, "-n", "true"], capture_output=True).returncode:
+            pytest.skip("no network namespace here (unshare -n is not permitted)")
+        image = data_file("multiview/bodytrack_sequenceB_1/CAM1/image0000.png")
+        code = ("import socket, sys, numpy as np; from PIL import Image; "
+                "from torchmocap.detectors import MediaPipePoseDetector; "
+                "socket.create_connection(('1.1.1.1', 80), timeout=1) if '--probe' in sys.argv "
+                "else None; "
+                f"rgb = np.asarray(Image.open({str(image)!r}).convert('RGB')); "
+                "print('found', MediaPipePoseDetector()(rgb).keypoints.shape[0])")
+        env = dict(os.environ, OMP_NUM_THREADS="1")
+        probe = subprocess.run([exe, "-n", sys.executable, "-c", code, "--probe"],
+                               capture_output=True, text=True, env=env, timeout=120)
+        assert probe.returncode != 0 and "unreachable" in probe.stderr  # really offline
+        r = subprocess.run([exe, "-n", sys.executable, "-c", code], capture_output=True,
+                           text=True, env=env, timeout=120)
+        assert r.returncode == 0 and "found 1" in r.stdout, r.stderr[-2000:]
 
     def test_exception_model_files(self, monkeypatch, tmp_path):
         """Missing or altered model files are refused before a graph is built."""
