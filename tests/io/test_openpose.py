@@ -14,6 +14,7 @@ from torchmocap.io.openpose import (
     check_keypoint_format,
     keypoint_format,
     read_openpose_json,
+    write_openpose_json,
 )
 
 
@@ -48,7 +49,7 @@ def _write(path, people) -> None:
 class TestFormats:
     def test_cardinality(self):
         assert {k: len(v) for k, v in KEYPOINT_FORMATS.items()} == {
-            "body_25": 25, "body_25b": 25, "coco_17": 17, "halpe_26": 26}
+            "body_25": 25, "body_25b": 25, "coco_17": 17, "halpe_26": 26, "mediapipe_33": 33}
         for names in KEYPOINT_FORMATS.values():
             assert len(set(names)) == len(names)
         # one vocabulary: COCO's 17 lead BODY_25B and HALPE-26, and BODY_25 has all of them
@@ -56,6 +57,11 @@ class TestFormats:
         assert KEYPOINT_FORMATS["body_25b"][:17] == coco == KEYPOINT_FORMATS["halpe_26"][:17]
         assert set(coco) < set(KEYPOINT_FORMATS["body_25"])
         assert set(KEYPOINT_FORMATS["body_25"]) == set(KEYPOINT_FORMATS["halpe_26"]) - {"Head"}
+        # MediaPipe's 33 share COCO's names but Head/Neck/MidHip; its feet: heels, foot index
+        mp = KEYPOINT_FORMATS["mediapipe_33"]
+        assert set(coco) < set(mp) and not {"Neck", "Head", "MidHip"} & set(mp)
+        assert (mp[0], mp[11], mp[23], mp[29], mp[32]) == ("Nose", "LShoulder", "LHip", "LHeel",
+                                                           "RFootIndex")
 
     def test_feature_known_indices(self):
         b25, b25b = KEYPOINT_FORMATS["body_25"], KEYPOINT_FORMATS["body_25b"]
@@ -144,3 +150,27 @@ class TestCheckFormat:
             check_keypoint_format("auto", hidden)
         with pytest.raises(KeypointFormatError, match=r"different keypoint counts"):
             check_keypoint_format("auto", [raw_people[0], raw_people[1][:, :17]])
+
+
+class TestWriteJson:
+    def test_feature_round_trip(self, tmp_path):
+        x = torch.rand(2, 33, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+        path = write_openpose_json(tmp_path / "sub" / "cam01.000007.json", x, {"note": [1, 2]})
+        assert torch.equal(read_openpose_json(path, 33), x)
+        data = json.loads(path.read_text())
+        assert data["version"] == 1.3 and data["note"] == [1, 2]
+        assert check_keypoint_format("auto", [x]) == "mediapipe_33"
+        empty = write_openpose_json(tmp_path / "none.json", torch.zeros(0, 33, 3))
+        assert read_openpose_json(empty, 33).shape == (0, 33, 3)
+        assert not list(tmp_path.rglob("*.tmp*"))
+
+    def test_exception(self, tmp_path):
+        with pytest.raises(KeypointFormatError, match=r"people: expected shape \(P, K, 3\)"):
+            write_openpose_json(tmp_path / "a.json", torch.zeros(33, 3))
+        with pytest.raises(KeypointFormatError, match=r"finite values and confidences"):
+            write_openpose_json(tmp_path / "a.json", torch.full((1, 2, 3), float("nan")))
+        with pytest.raises(KeypointFormatError, match=r"must not set 'version'"):
+            write_openpose_json(tmp_path / "a.json", torch.zeros(1, 2, 3), {"people": []})
+        with pytest.raises(KeypointFormatError, match=r"extra: expected JSON-safe"):
+            write_openpose_json(tmp_path / "a.json", torch.zeros(1, 2, 3), {"x": object()})
+        assert not (tmp_path / "a.json").exists()

@@ -18,7 +18,8 @@ from torchmocap.skeleton import (
     load_keypoint_map,
 )
 
-FORMATS = {"body_25b": (25, 25), "body_25": (25, 25), "coco_17": (17, 17), "halpe_26": (26, 26)}
+FORMATS = {"body_25b": (25, 25), "body_25": (25, 25), "coco_17": (17, 17), "halpe_26": (26, 26),
+           "mediapipe_33": (33, 33)}
 
 
 def _poses(sk, n, seed, dtype=torch.float64):

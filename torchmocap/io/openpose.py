@@ -11,7 +11,12 @@ vocabulary (``LShoulder``, ``RKnee``, …; the pelvis centre is ``MidHip`` in ev
 * ``body_25``: OpenPose's BODY_25 (``MidHip`` at 8, between the hips at 9 and 12);
 * ``body_25b``: OpenPose's BODY_25B (COCO order first, then ``Neck``, ``Head`` and the feet);
 * ``coco_17``: the 17 COCO keypoints in COCO order;
-* ``halpe_26``: HALPE-26 (COCO order, then ``Head``, ``Neck``, ``MidHip`` and the feet).
+* ``halpe_26``: HALPE-26 (COCO order, then ``Head``, ``Neck``, ``MidHip`` and the feet);
+* ``mediapipe_33``: MediaPipe Pose's 33 landmarks (:mod:`torchmocap.detectors`): face points
+  (eyes inner/centre/outer, ears, mouth corners), the limbs, three points per hand
+  (``LPinky``, ``LIndex``, ``LThumb``) and the feet (``LHeel``, ``LFootIndex``). Shared names
+  are the same body parts, not the same points: MediaPipe's hips, for one, lie elsewhere than
+  OpenPose's (the keypoint maps place each format's keypoints on the skeleton).
 
 BODY_25 and BODY_25B both have 25 keypoints; :func:`body25_plausibility` tells them apart from
 the detections themselves (BODY_25's ``MidHip`` and ``Neck`` lie halfway between the hips and
@@ -39,6 +44,7 @@ __all__ = [
     "check_keypoint_format",
     "keypoint_format",
     "read_openpose_json",
+    "write_openpose_json",
 ]
 
 _COCO = ["Nose", "LEye", "REye", "LEar", "REar", "LShoulder", "RShoulder", "LElbow", "RElbow",
@@ -55,6 +61,11 @@ KEYPOINT_FORMATS: dict[str, tuple[str, ...]] = {
     "coco_17": tuple(_COCO),
     "halpe_26": (*_COCO, "Head", "Neck", "MidHip", "LBigToe", "RBigToe", "LSmallToe",
                  "RSmallToe", "LHeel", "RHeel"),
+    "mediapipe_33": ("Nose", "LEyeInner", "LEye", "LEyeOuter", "REyeInner", "REye",
+                     "REyeOuter", "LEar", "REar", "LMouth", "RMouth", "LShoulder", "RShoulder",
+                     "LElbow", "RElbow", "LWrist", "RWrist", "LPinky", "RPinky", "LIndex",
+                     "RIndex", "LThumb", "RThumb", "LHip", "RHip", "LKnee", "RKnee", "LAnkle",
+                     "RAnkle", "LHeel", "RHeel", "LFootIndex", "RFootIndex"),
 }
 
 #: BODY_25 indices of (MidHip, RHip, LHip) and (Neck, RShoulder, LShoulder)
@@ -138,6 +149,47 @@ def read_openpose_json(path: str | os.PathLike, num_keypoints: int | None = None
     if not out:
         return torch.zeros(0, num_keypoints or 0, 3, dtype=torch.float64)
     return torch.stack(out)
+
+
+def write_openpose_json(path: str | os.PathLike, people: Tensor,
+                        extra: dict | None = None) -> Path:
+    """Write ``people (P, K, 3)`` ``(u, v, confidence)`` as an OpenPose JSON file
+    (``{"version": 1.3, "people": [{"pose_keypoints_2d": [...]}, ...]}``), atomically: a reader
+    sees the old file or the whole new one. :func:`read_openpose_json` reads it back.
+
+    Args:
+        path: the file (its folder is created).
+        people: ``(P, K, 3)`` finite values, confidences >= 0 (``P = 0``: nobody).
+        extra: more top-level JSON keys (JSON-safe), e.g. where the detections came from.
+
+    Returns:
+        the path.
+
+    Raises:
+        KeypointFormatError: another shape, non-finite values, negative confidences, an
+            ``extra`` that is not JSON-safe or that overrides ``version`` or ``people``.
+    """
+    from torchmocap.atomic import atomic_path
+
+    x = torch.as_tensor(people, dtype=torch.float64)
+    if x.dim() != 3 or x.shape[-1] != 3:
+        raise KeypointFormatError(f"people: expected shape (P, K, 3) (u, v, confidence), got "
+                                  f"{tuple(x.shape)}")
+    if not bool(torch.isfinite(x).all()) or bool((x[..., 2] < 0).any()):
+        raise KeypointFormatError("people: expected finite values and confidences >= 0")
+    extra = dict(extra or {})
+    if {"version", "people"} & set(extra):
+        raise KeypointFormatError("extra: must not set 'version' or 'people'")
+    data = {"version": 1.3,
+            "people": [{"pose_keypoints_2d": p.flatten().tolist()} for p in x], **extra}
+    try:
+        text = json.dumps(data, allow_nan=False)
+    except (TypeError, ValueError) as e:
+        raise KeypointFormatError(f"extra: expected JSON-safe values ({e})") from None
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+    return path
 
 
 def body25_plausibility(people: Sequence[Tensor]) -> float | None:
