@@ -61,6 +61,7 @@ __all__ = [
     "ParametricBody",
     "ParametricPose",
     "PhenotypeError",
+    "MESH_BONE_CAPSULES",
     "SEGMENT_ENDS",
     "blend_rest_shape",
     "segment_alignments",
@@ -85,6 +86,20 @@ HUMAN31_JOINT_CUBES: dict[str, str] = {
 #: a segment ends at is met by its flesh whatever the skeleton's proportions
 SEGMENT_ENDS: dict[str, str] = {"Hips": "spine", "LHipJoint": "l_hip", "RHipJoint": "r_hip",
                                 "LeftShoulder": "l_shoulder", "RightShoulder": "r_shoulder"}
+
+#: mesh bone → the skeleton bone (child joint name, a :class:`~torchmocap.body.CapsuleBody`
+#: capsule) whose flesh it is: the capsules fitted to the mesh take these vertices
+MESH_BONE_CAPSULES: dict[str, str] = {
+    "Hips": "spine", "LHipJoint": "l_hip", "RHipJoint": "r_hip",
+    "LowerBack": "neck", "Spine": "neck", "Spine1": "neck",
+    "LeftShoulder": "l_shoulder", "RightShoulder": "r_shoulder",
+    "Neck": "head", "Neck1": "head", "Head": "head_top",
+    **{f"{side}{b}": f"{s}_{c}" for side, s in (("Left", "l"), ("Right", "r")) for b, c in (
+        ("Arm", "elbow"), ("ForeArm", "wrist"), ("Hand", "hand"), ("FingerBase", "hand"),
+        ("HandFinger1", "hand"), ("UpLeg", "knee"), ("Leg", "ankle"), ("Foot", "toe"),
+        ("ToeBase", "toe"))},
+    "LThumb": "l_hand", "RThumb": "r_hand",
+}
 
 #: the helper cube under the soles (MakeHuman's ground joint)
 _GROUND_CUBE = "joint-ground"
@@ -266,6 +281,8 @@ class ParametricBody(nn.Module):
         for b, seg in enumerate(seg_of_bone):
             onehot[b, segments.index(seg)] = 1.0
         self.register_buffer("weights", data.weights @ onehot)
+        self.mesh_bone_names = list(data.bone_names)
+        self.register_buffer("vertex_bone", data.weights.argmax(-1))
         self.register_buffer("variation_mask", data.variation_mask.clone())
         self.register_buffer("variation_feature", data.variation_feature.clone())
         self.register_buffer("variation_anchor", data.variation_anchor.clone())
@@ -549,6 +566,16 @@ class ParametricBody(nn.Module):
     def mesh_parts(self) -> Tensor:
         """``(V,)`` long: the skeleton joint carrying each vertex most (its dominant weight)."""
         return torch.tensor(self._seg_carrier, device=self.device)[self.weights.argmax(-1)]
+
+    def capsule_labels(self, capsule_bones: list[str] | None = None) -> Tensor:
+        """``(V,)`` long: the capsule (index into ``capsule_bones``, default the skeleton's
+        bones = :class:`~torchmocap.body.CapsuleBody` order) each vertex's flesh belongs to,
+        by its dominant mesh bone (:data:`MESH_BONE_CAPSULES`); −1 for a bone not listed."""
+        bones = self.bone_names if capsule_bones is None else list(capsule_bones)
+        table = torch.tensor([bones.index(MESH_BONE_CAPSULES[b])
+                              if MESH_BONE_CAPSULES.get(b) in bones else -1
+                              for b in self.mesh_bone_names], device=self.device)
+        return table[self.vertex_bone]
 
     def to_trimesh(self, vertices: Tensor):
         """A ``trimesh.Trimesh`` of one body ``(V, 3)``."""
