@@ -5,8 +5,8 @@ from torchmocap.body import capsule_fit, capsules, parametric, parts, phenotype_
 from torchmocap.body.capsule_fit import *  # noqa: F403
 from torchmocap.body.capsules import *  # noqa: F403 - re-exports capsules.__all__
 from torchmocap.body.parametric import *  # noqa: F403
-from torchmocap.body.phenotype_fit import *  # noqa: F403
 from torchmocap.body.parts import *  # noqa: F403
+from torchmocap.body.phenotype_fit import *  # noqa: F403
 from torchmocap.body.skinning import *  # noqa: F403
 
 __all__ = sorted({*capsule_fit.__all__, *capsules.__all__, *parametric.__all__, *parts.__all__,
