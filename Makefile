@@ -4,8 +4,8 @@
 #   make test    # the test suite (python -m pytest -q; PYTEST_ARGS="..." adds options)
 #
 # Both first prepare $(VENV): create it with $(PYTHON) -m venv when missing, install the pinned
-# CPU torch, then the project with its dev and body extras (pip install -e ".[dev,body]": the
-# Anny body's tests need `anny`, which builds its cache once per machine, ~1-2 min, in
+# CPU torch, then the project with its dev extras (pip install -e ".[dev]"; they include the
+# detector and the Anny body, whose cache is built once per machine, ~1-2 min, in
 # $TORCHMOCAP_CACHE_DIR or ~/.cache/torchmocap). Stamp files in
 # $(VENV) remember what was installed: a re-run with nothing changed starts at once; a changed
 # pyproject.toml (or TORCH_VERSION) reinstalls only what depends on it.
@@ -52,7 +52,7 @@ $(STAMP_TORCH): | $(PY)
 	touch $@
 
 $(STAMP_DEV): pyproject.toml $(STAMP_TORCH)
-	$(PIP) install -q -e ".[dev,body]"
+	$(PIP) install -q -e ".[dev]"
 	touch $@
 
 clean-venv:

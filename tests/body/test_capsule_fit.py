@@ -13,7 +13,7 @@ from torchmocap.body import CapsuleBody
 from torchmocap.body.capsule_fit import fit_capsules, vertex_areas
 from torchmocap.body.parametric import ParametricBody
 from torchmocap.cameras import make_ring_rig
-from torchmocap.data.render import rasterize_mask
+from torchmocap.data.synthetic.render import rasterize_mask
 from torchmocap.likelihoods.silhouette import render_capsule_silhouettes, silhouette_iou
 from torchmocap.skeleton import human31
 

@@ -48,6 +48,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchmocap.atomic import atomic_path
 from torchmocap.detectors.mediapipe_pose import (
     MEDIAPIPE_33,
     MEDIAPIPE_VERSION,
@@ -56,7 +57,6 @@ from torchmocap.detectors.mediapipe_pose import (
     check_model_files,
 )
 from torchmocap.detectors.regions import DetectorInputError, Region, box_to_region
-from torchmocap.atomic import atomic_path
 from torchmocap.io.frames import IMAGE_SUFFIXES, natural_key, open_frames
 from torchmocap.io.openpose import KeypointFormatError, read_openpose_json, write_openpose_json
 
