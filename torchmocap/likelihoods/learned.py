@@ -148,7 +148,8 @@ def write_weights(path: str | os.PathLike, payload: Mapping[str, Any]) -> Path:
     p = Path(path)
     full = {"format": WEIGHTS_FORMAT, "version": WEIGHTS_VERSION, **payload}
     with atomic_path(p, durable=True) as tmp:
-        torch.save(full, tmp)
+        with open(tmp, "wb") as f:  # a file object: the archive name is not the temporary one
+            torch.save(full, f)
     return p
 
 

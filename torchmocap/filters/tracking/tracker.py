@@ -523,7 +523,8 @@ class Tracker(nn.Module):
                    "components": {path: m.checkpoint_state() for path, m in self.named_modules()
                                   if isinstance(m, Stateful)}}
         with atomic_path(path) as tmp:
-            torch.save(payload, tmp)
+            with open(tmp, "wb") as f:  # a file object: the archive name is not the temporary one
+                torch.save(payload, f)
 
     def load_checkpoint(self, path: str, fingerprint: str | None = None,
                         num_frames: int | None = None) -> TrackState:
