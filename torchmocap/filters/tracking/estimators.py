@@ -46,7 +46,10 @@ def _check(particles: torch.Tensor, weights: torch.Tensor) -> None:
 
 
 class Estimator(nn.Module):
-    """Base class: ``forward(particles, weights, context) -> (D,)``."""
+    """Base class: ``forward(particles, weights, context) -> (D,)``; ``requires`` names the
+    observation modalities it reads (e.g. the sensors of eq. 18's manifold mean)."""
+
+    requires: tuple[str, ...] = ()
 
     def forward(self, particles: torch.Tensor, weights: torch.Tensor, context=None
                 ) -> torch.Tensor:

@@ -52,6 +52,8 @@ __all__ = [
     "check_working_memory",
 ]
 
+#: the components that declare the observation modalities they read (``requires``)
+_COMPONENTS = (Likelihood, Proposal, Estimator)
 #: the format version of :meth:`Tracker.save_checkpoint` (3: components save their own state)
 CHECKPOINT_VERSION = 3
 #: the seeds a ``torch.Generator`` takes (its 64-bit state; negative seeds wrap around)
@@ -206,7 +208,7 @@ class Tracker(nn.Module):
         # the IMUs): a frame without evidence of one is reported like a likelihood term without
         # evidence (a likelihood term reports its own)
         self._outside_likelihood = tuple(
-            m for c in (self.proposal, self.estimator) for m in getattr(c, "requires", ())
+            m for c in (self.proposal, self.estimator) for m in c.requires
             if m not in self.likelihood.requires)
         if smoother is not None:
             smoother.check(self.inference)
@@ -242,7 +244,7 @@ class Tracker(nn.Module):
         """Observation modalities the components read (union, in order)."""
         mods: list[str] = []
         for c in (self.likelihood, self.proposal, self.estimator):
-            mods += [m for m in getattr(c, "requires", ()) if m not in mods]
+            mods += [m for m in c.requires if m not in mods]
         return tuple(mods)
 
     def check_sequence(self, sequence) -> None:
@@ -272,10 +274,10 @@ class Tracker(nn.Module):
         """``"path (Class)"`` of the innermost components that read ``modality``."""
         out = []
         for path, mod in self.named_modules():
-            if not path or modality not in getattr(mod, "requires", ()):
+            if not path or not isinstance(mod, _COMPONENTS) or modality not in mod.requires:
                 continue
             inner = [c for _, c in mod.named_modules() if c is not mod
-                     and modality in getattr(c, "requires", ())]
+                     and isinstance(c, _COMPONENTS) and modality in c.requires]
             if not inner:
                 out.append(f"{path} ({type(mod).__name__})")
         return out
