@@ -51,6 +51,10 @@ class CameraError(ValueError):
     """Malformed camera parameters or calibration file (names the file and line when known)."""
 
 
+class RefinementError(CameraError):
+    """A camera refinement that cannot run as asked (names the argument or setting)."""
+
+
 def _check_rig_params(K: Tensor, dist: Tensor | None, R: Tensor, t: Tensor) -> int:
     """``C`` after checking the shapes of ``K (C, 3, 3)``, ``R (C, 3, 3)``, ``t (C, 3)`` and
     ``dist (C, 5)`` (:class:`CameraError`)."""

@@ -45,14 +45,14 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchmocap.cameras.rig_parameters import RefinementError
+from torchmocap.cameras.projection import RefinementError
 
 __all__ = ["check_gauge", "gauge_constraints", "similarity_tangents"]
 
 
 def check_gauge(gauge, num_cameras: int, name: str = "gauge") -> str | int:
     """``"mean"``, ``"none"`` or a camera index in ``[0, C)``; else a
-    :class:`~torchmocap.cameras.rig_parameters.RefinementError` naming ``name``."""
+    :class:`~torchmocap.cameras.RefinementError` naming ``name``."""
     if isinstance(gauge, str) and gauge in ("mean", "none"):
         return gauge
     if isinstance(gauge, int) and not isinstance(gauge, bool) and 0 <= gauge < num_cameras:

@@ -53,8 +53,9 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from torchmocap.cameras.projection import camera_centers
-from torchmocap.cameras.rig import CameraError, CameraRig
+from torchmocap.cameras.projection import RefinementError, camera_centers
+from torchmocap.cameras.rig import CameraRig
+from torchmocap.cameras.rig_gauge import gauge_constraints
 from torchmocap.geometry import so3_exp
 
 __all__ = [
@@ -90,10 +91,6 @@ PARAMETER_UNITS = (1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1.0, 1.0, 1e-
 
 #: the groups refined when none are named
 DEFAULT_GROUPS = ("rotation", "translation", "focal")
-
-
-class RefinementError(CameraError):
-    """A camera refinement that cannot run as asked (names the argument or setting)."""
 
 
 def check_groups(groups) -> tuple[str, ...]:
@@ -198,8 +195,6 @@ class RigParametrization:
 
     def __init__(self, rig: CameraRig, groups: Sequence[str] = DEFAULT_GROUPS,
                  gauge: str | int = "mean", time_gauge: str | int = "mean") -> None:
-        from torchmocap.cameras.rig_gauge import gauge_constraints
-
         if not isinstance(rig, CameraRig):
             raise RefinementError(f"rig: expected a CameraRig, got {type(rig).__name__}")
         self.groups = check_groups(groups)

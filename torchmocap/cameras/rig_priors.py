@@ -29,7 +29,7 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import Tensor
 
-from torchmocap.cameras.rig_parameters import RefinementError
+from torchmocap.cameras.projection import RefinementError
 
 __all__ = ["RigPriors"]
 
