@@ -95,7 +95,7 @@ def run(args) -> dict:
     from torchmocap.data import Frame
     from torchmocap.data.synthetic.scenario import build_rig
     from torchmocap.distributions import hessian_to_covariance
-    from torchmocap.filters.inference import distinct_minima, levenberg_marquardt
+    from torchmocap.filters.optim import distinct_minima, levenberg_marquardt
     from torchmocap.likelihoods import Joints2DLikelihood, Poses
     from torchmocap.proposals import CovarianceScaledProposal, ProposalContext, kinematic_jumps
 

@@ -12,7 +12,7 @@ import torch
 
 from torchmocap.cameras import make_ring_rig
 from torchmocap.data import Frame
-from torchmocap.filters.inference import distinct_minima, levenberg_marquardt
+from torchmocap.filters.optim import distinct_minima, levenberg_marquardt
 from torchmocap.likelihoods import FrameEnergy, Joints2DLikelihood, Poses
 from torchmocap.proposals import (
     CovarianceScaledProposal,
