@@ -441,10 +441,10 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
     elif mode == "detector":  # the tracked views' from their own check, as their keypoints
         seq.silhouettes, meta.mask_report = detector_masks(source, request_seen, seen_report,
                                                            scale, canvas)
-        if h is not None:
-            every, _ = detector_masks(source, request, kp_report["with_heldout_view"], scale,
-                                      canvas)
-            seq.silhouettes = torch.cat([seq.silhouettes, every[:, h:h + 1]], 1)[
+        if h is not None:  # the held-out view's from the check with every view
+            one = KeypointRequest(files.root, [chosen[h]], frames, kp["format"], [sources[h]])
+            held, _ = detector_masks(source, one, kp_report["with_heldout_view"], scale, canvas)
+            seq.silhouettes = torch.cat([seq.silhouettes, held], 1)[
                 :, [seen.index(c) if c in seen else len(seen) for c in range(C)]]
     if h is not None:
         tracked.silhouettes = None if seq.silhouettes is None else \
@@ -457,6 +457,11 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
                                    fit_settings, scale))
     elif tracked.silhouettes is not None and tracked.num_cameras >= 2:
         meta.update(hull_start(tracked.rig, tracked.silhouettes[0]))
+    elif tracked.silhouettes is None:
+        meta.subject_fit = {"skipped": "the recording has neither keypoints nor masks (no "
+                                       "pose/ or pose-associated/ files); "
+                                       "data.keypoints.source=mediapipe computes keypoints "
+                                       "from the frames"}
     return seq
 
 

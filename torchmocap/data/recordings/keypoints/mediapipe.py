@@ -274,8 +274,10 @@ class _Views:
                 pick = ~pick  # its mirror image: the same errors
             # the relabelled views' own error must at least halve; the face of a body seen
             # mirrored (arms and legs relabelled) needs only to fit better
-            body = bool(bits[views][pick][:, :2].all()) if name == "face" and g >= 2 else False
-            gain = 1.0 if body else RELABEL_GAIN
+            limbs = [i for i, k in enumerate(self.perms) if k in ("arms", "legs")]
+            mirrored = name == "face" and len(limbs) == 2 and \
+                bool(bits[views][pick][:, limbs].all())
+            gain = 1.0 if mirrored else RELABEL_GAIN
             if not bool(pick.any()) or not float(e[best][pick].nanmean()) < \
                     gain * float(e[0][pick].nanmean()):
                 continue
