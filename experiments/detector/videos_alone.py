@@ -125,13 +125,17 @@ def iou(a: torch.Tensor, b: torch.Tensor) -> float:
 
 # ---------------------------------------------------------------------------- runs
 def track_skeleton(run: Path):
-    """The run's tracking skeleton: human31 with the subject's fitted bone lengths
-    (``metrics.json`` ``subject_fit.lengths``)."""
-    from torchmocap.skeleton import human31
+    """The run's tracking skeleton: human31 with the rest offsets of the run's ``tracked.bvh``
+    (the subject's fitted skeleton, written with the track); :func:`check_skeleton` checks
+    that it reproduces the file's joint positions."""
+    from torchmocap.io import read_bvh
+    from torchmocap.skeleton import Skeleton, human31
 
-    metrics = json.loads((run / "metrics.json").read_text())
-    lengths = metrics["subject_fit"]["lengths"]
-    return human31().with_bone_lengths(lengths).double()
+    clip = read_bvh(run / "tracked.bvh")
+    spec = human31().to_dict()
+    for j in spec["joints"]:
+        j["offset"] = clip.offsets[clip.joint_names.index(j["name"])].tolist()
+    return Skeleton.from_dict(spec).double()
 
 
 def track_points(run: Path, kmap_name: str, names) -> torch.Tensor:
@@ -179,11 +183,15 @@ def score_run(run: Path, ref: dict, openpose) -> dict:
     held = metrics["heldout"]
     cam = held["camera"]
     c = CAMERAS.index(cam)
+    check = check_skeleton(run)
+    if not check < 1e-4:
+        raise ValueError(f"{run}: the rebuilt skeleton misses tracked.bvh's joints by "
+                         f"{check:.3g} m")
     out = {"camera": cam, "seconds_per_frame": metrics.get("seconds_per_frame"),
            "own": {k: held.get(k) for k in ("median_px", "mean_px", "pck_05", "pck_10",
                                              "silhouette_iou", "num_compared")},
            "own_hold_first_pose_px": held["hold_first_pose"]["median_px"],
-           "skeleton_check_m": check_skeleton(run)}
+           "skeleton_check_m": check}
     X, sk, theta = track_points(run, "body_25b", keypoint_format("body_25b"))
     s = heldout_scores(X, openpose, c)
     out["vs_openpose"] = {"median_px": s.median_px, "mean_px": s.mean_px, "pck_05": s.pck_05,
@@ -197,14 +205,31 @@ def score_run(run: Path, ref: dict, openpose) -> dict:
     body = CapsuleBody(sk.float())
     one = ref["rig"].subset([c])
     with torch.no_grad():
-        sil = torch.cat([render_capsule_silhouettes(body, one, theta[t:t + 1].float())
-                         for t in range(theta.shape[0])])[:, 0]
+        sil = torch.stack([render_capsule_silhouettes(body, one, theta[t].float())[0]
+                           for t in range(theta.shape[0])])
     out["silhouette_iou"] = {}
+    h, w = sil.shape[-2:]  # the view's own size (the masks' canvas may be larger)
     for name, masks in ref["masks"].items():
-        m = masks[:, c]
-        H, W = m.shape[-2:]
-        out["silhouette_iou"][name] = iou(sil[:, :H, :W], m)
+        out["silhouette_iou"][name] = iou(sil, masks[:, c, :h, :w])
     return out
+
+
+#: the body keypoints both detectors have
+SHARED = ("LShoulder", "RShoulder", "LElbow", "RElbow", "LWrist", "RWrist", "LHip", "RHip",
+          "LKnee", "RKnee", "LAnkle", "RAnkle")
+
+
+def detector_distance(mediapipe: torch.Tensor, openpose: torch.Tensor) -> torch.Tensor:
+    """``(T,)`` per frame the median pixel distance between MediaPipe's kept body keypoints
+    ``(T, 33, 3)`` and OpenPose's ``(T, 25, 3)`` (the names they share; NaN: none)."""
+    from torchmocap.io.openpose import keypoint_format
+
+    mp, op = keypoint_format("mediapipe_33"), keypoint_format("body_25b")
+    a = mediapipe[:, [mp.index(n) for n in SHARED]]
+    b = openpose[:, [op.index(n) for n in SHARED]]
+    ok = (a[..., 2] > 0) & (b[..., 2] > 0.1)
+    d = (a[..., :2] - b[..., :2]).norm(dim=-1)
+    return torch.where(ok, d, torch.full_like(d, math.nan)).nanmedian(-1).values
 
 
 def detector_timing(frames: int = 25) -> dict:
@@ -267,9 +292,18 @@ def report(args) -> None:
                                       "frames_searched_in_box", "frames_unchecked",
                                       "median_agreement_px")}
               for cam, v in kp_report["views"].items()}
-    timing = {"detect_ms_per_frame": detector_timing()}
+    for c, cam in enumerate(CAMERAS):
+        d = detector_distance(ref["mediapipe"][:, c], openpose.points[:, c])
+        ok = d[torch.isfinite(d)]
+        checks[cam]["vs_openpose_median_px"] = float(ok.median())
+        checks[cam]["vs_openpose_frames_over_50px"] = int((ok > 50).sum())
+    import os
+
+    timing = {"load_average_before": list(os.getloadavg()),
+              "detect_ms_per_frame": detector_timing()}
     with tempfile.TemporaryDirectory() as tmp:
         timing["cold_cache"] = cold_timing(Path(tmp))
+    timing["load_average_after"] = list(os.getloadavg())
     result = {"runs": rows, "mask_iou": pairs, "keypoint_check": checks, "timing": timing,
               "groups": GROUPS}
     RESULTS.mkdir(exist_ok=True)
@@ -322,16 +356,22 @@ def table(r: dict) -> str:
         lines.append(f"| {k} | " + " | ".join(_f(v[c], 3) for c in CAMERAS) + " |")
     lines += ["", "The cross-view check of MediaPipe's detections (every view, 100 frames):", "",
               "| camera | dropped | relabelled (left/right) | searched in the subject's box | "
-              "median agreement px |", "|---|---:|---:|---:|---:|"]
+              "median agreement px | median px from OpenPose's detections | frames > 50 px |",
+              "|---|---:|---:|---:|---:|---:|---:|"]
     for cam, v in r["keypoint_check"].items():
         lines.append(f"| {cam} | {len(v['frames_dropped'])} | {len(v['frames_relabelled'])} | "
-                     f"{len(v['frames_searched_in_box'])} | {_f(v['median_agreement_px'])} |")
+                     f"{len(v['frames_searched_in_box'])} | {_f(v['median_agreement_px'])} | "
+                     f"{_f(v.get('vs_openpose_median_px'))} | "
+                     f"{v.get('vs_openpose_frames_over_50px', '–')} |")
     t = r["timing"]
     lines += ["", "Detector time per 1080x1920 frame (one thread, the shared machine): "
               + ", ".join(f"{c} {_f(v)} ms" for c, v in t["detect_ms_per_frame"].items())
               + f" (the call alone); {_f(t['cold_cache']['ms_per_frame'])} ms per frame "
               f"through an empty cache ({t['cold_cache']['frames']} frames: decoding, "
-              "detection, writing).", ""]
+              "detection, writing); load average "
+              + " → ".join(f"{t[k][0]:.1f}" for k in ("load_average_before",
+                                                      "load_average_after") if k in t)
+              + " on the 2 cores.", ""]
     return "\n".join(lines)
 
 

@@ -47,4 +47,4 @@ def test_table(script):
     text = script.table(result)
     assert "| OpenPose | own detections | 20.0 | – | – | – | 20.0 | 80.0 | 0.30 |" in text
     assert "| videos alone | own detections | 30.0 |" in text
-    assert "| cam01 | 0 | 1 | 0 | 20.0 |" in text and "90.0 ms per frame" in text
+    assert "| cam01 | 0 | 1 | 0 | 20.0 | – | – |" in text and "90.0 ms per frame" in text
