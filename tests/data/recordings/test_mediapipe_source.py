@@ -211,6 +211,16 @@ class TestSource:
         assert seq.meta.keypoint_report["computed"] == {"cam03": 2, "cam04": 2}
         torch.testing.assert_close(seq.joints2d, run.joints2d[:2, 2:], atol=1e-4, rtol=0)
 
+    def test_feature_one_camera_unchecked(self, run, pose2sim_root, cache):
+        """One camera: nothing to check against; its detections are kept and reported
+        unchecked (not dropped)."""
+        seq = load(pose2sim_root, cache, cameras=["cam03"], masks="detector")
+        view = seq.meta.keypoint_report["views"]["cam03"]
+        assert view["frames_unchecked"] == list(range(FRAMES)) and view["frames_dropped"] == []
+        assert view["agreement_px"] == [None] * FRAMES
+        torch.testing.assert_close(seq.joints2d[:, 0], run.joints2d[:, 2])
+        assert seq.silhouettes.any((-1, -2)).all()
+
     def test_feature_heldout_camera(self, run, pose2sim_root, cache):
         """With a camera held out, the tracked views are checked without it (their report),
         and the held-out view's detections and masks come from the check with every view."""
@@ -361,7 +371,9 @@ class TestSwaps:
         seq = load(pose2sim_root, cache, masks="detector", keypoints={"relabel": False})
         view = seq.meta.keypoint_report["views"]["cam04"]
         assert view["frames_dropped"] == list(range(FRAMES))
-        assert all(d.startswith("disagrees with the other views") for d in view["dropped"])
+        assert all(d.startswith("disagrees with the other views") and
+                   d.endswith("searched again in the subject's box (triangulation)")
+                   for d in view["dropped"])
         assert view["box"] == ["triangulation"] * FRAMES
         assert not bool(seq.joints2d[:, 3, :, 2].any()) and not bool(seq.silhouettes[:, 3].any())
         assert seq.meta.mask_report["empty_frames"]["cam04"] == list(range(FRAMES))

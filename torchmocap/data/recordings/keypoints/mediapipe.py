@@ -662,20 +662,20 @@ class MediaPipeKeypoints(KeypointSource):
         T, C, K = det.shape[:3]
         empty = torch.zeros(0, K, 3, dtype=torch.float64)
         people: list[list[Tensor]] = [[] for _ in range(T)]
-        rows = {c.name: {"box": [], "agreement_px": [], "relabelled": [], "dropped": []}
-                for c in cams}
-        present = (det[..., 2] > self.min_visibility).sum(-1) >= 1  # (T, C): anybody found
+        rows = {c.name: {"box": [], "agreement_px": [], "relabelled": [], "dropped": [],
+                         "unchecked": []} for c in cams}
+        present = (det[..., 2] > 0).any(-1)  # (T, C): anybody found
         for i in range(T):
             r = cons[i]
             checkable = r is not None and int(present[i].sum()) >= 2
             for c, cam in enumerate(cams):
                 row = rows[cam.name]
-                kept, why, px, swapped = None, None, None, None
+                kept, why, px, swapped = None, None, math.nan, None
+                unchecked = False
                 if not bool(present[i, c]):
                     why = "nobody found"
-                elif not checkable:
-                    kept, why = det[i, c], None  # one view: nothing to check it against
-                    px = "unchecked"
+                elif not checkable:  # one view found somebody: nothing to check it against
+                    kept, unchecked = det[i, c], True
                 elif bool(r.agrees[c]):
                     kept = det[i, c][r.permutation[c]]
                     px = float(r.agreement_px[c])
@@ -687,13 +687,14 @@ class MediaPipeKeypoints(KeypointSource):
                     why = ("disagrees with the other views" + (
                         f" ({e:.0f} px, limit {float(r.limit_px[c]):.0f} px)"
                         if math.isfinite(e) else " (too few body keypoints seen)"))
+                if why and where[i][c] != "image":
+                    why += f"; searched again in the subject's box ({where[i][c]})"
                 people[i].append(empty if kept is None else kept[None].clone())
                 row["box"].append(where[i][c])
-                row["agreement_px"].append(None if px is None or px == "unchecked"
-                                           or not math.isfinite(px) else round(px, 2))
+                row["agreement_px"].append(round(px, 2) if math.isfinite(px) else None)
                 row["relabelled"].append(swapped)
                 row["dropped"].append(why)
-                row.setdefault("unchecked", []).append(px == "unchecked")
+                row["unchecked"].append(unchecked)
         views = {}
         for cam in cams:
             row = rows[cam.name]
