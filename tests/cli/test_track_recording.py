@@ -132,3 +132,38 @@ def test_tracker_needing_imus_is_refused_before_loading(tmp_path, monkeypatch, d
                                          rf"\(it provides images, silhouettes.*\); track it "
                                          rf"with tracker={presets}"):
         run(cfg, tmp_path)
+
+
+@pytest.mark.slow
+def test_console_tracks_a_recording_from_its_videos_alone(shared_data, tmp_path):
+    """A folder with only videos/ and calibration/: the command computes the keypoints and
+    masks with the detector (cached under the working directory, not in the recording),
+    tracks with a camera held out and scores it; without naming the detector it says how."""
+    import importlib.util
+
+    if importlib.util.find_spec("mediapipe") is None:
+        msg = 'mediapipe is not installed: pip install -e ".[dev]"'
+        pytest.fail(msg) if os.environ.get("CI") else pytest.skip(msg)
+    src = shared_data / "multiview" / "pose2sim_balancing"
+    rec = tmp_path / "rec"
+    for sub in ("videos", "calibration"):
+        shutil.copytree(src / sub, rec / sub)
+    common = [EXE, "data=recording", f"data.path={rec}", "data.stop=3", "data.scale=0.25",
+              "tracker=real_keypoints", "tracker.num_particles=30", "tracker.inference.layers=3",
+              "threads=1", "progress=false", "glb.enabled=false", "overlays=1"]
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    r = subprocess.run([*common, f"hydra.run.dir={tmp_path / 'plain'}"], capture_output=True,
+                       text=True, timeout=600, cwd=tmp_path, env=env)
+    assert r.returncode == 2 and "data.keypoints.source=mediapipe computes keypoints" in r.stderr
+    r = subprocess.run([*common, "data.keypoints.source=mediapipe", "data.masks=detector",
+                        "evaluation.heldout_camera=cam02", f"hydra.run.dir={tmp_path / 'run'}"],
+                       capture_output=True, text=True, timeout=600, cwd=tmp_path, env=env)
+    assert r.returncode == 0, r.stderr[-3000:]
+    saved = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    h = saved["heldout"]
+    assert h["camera"] == "cam02" and h["num_compared"] > 40 and h["median_px"] < 60
+    assert h["silhouette_iou"] > 0.4 and list(saved["tracked_views"]) == ["cam01", "cam03",
+                                                                          "cam04"]
+    assert sorted(p.name for p in rec.iterdir()) == ["calibration", "videos"]  # untouched
+    entries = list((tmp_path / "outputs" / "keypoint_cache" / "image").iterdir())
+    assert len(entries) == 4 and len(list(tmp_path.joinpath("run").glob("overlay_*.png"))) == 1

@@ -30,7 +30,7 @@ class TestRegistry:
 
     @pytest.mark.parametrize("given, match", [
         ({"source": "nope"}, r"unknown source 'nope'; expected one of \['auto', 'none', "
-                             r"'openpose'"),
+                             r"'mediapipe', 'openpose'"),
         ({"source": 3}, r"data\.keypoints\.source: expected a source name"),
         ({"source": "none", "folder": "raw"}, r"unknown setting\(s\) \['folder'\]"),
         ({"source": "openpose", "shift": 1}, r"unknown setting\(s\) \['shift'\]; expected "

@@ -515,7 +515,7 @@ class TestBadInput:
         ({"fps": 30}, r"data\.fps: 30 differs from the videos' 60 fps"),
         ({"keypoints": {"source": "both"}},
          r"data\.keypoints\.source: unknown source 'both'; expected one of \['auto', 'none', "
-         r"'openpose'"),
+         r"'mediapipe', 'openpose'"),
         ({"keypoints": {"source": "openpose", "folder": "both"}},
          r"data\.keypoints\.folder: expected one of \['auto', 'associated', 'raw'\]"),
         ({"keypoints": {"source": "auto", "folder": "raw"}},

@@ -45,6 +45,7 @@ from torchmocap.data.recordings.keypoints import (
 )
 from torchmocap.data.recordings.mask_source import (
     check_mask_settings,
+    detector_masks,
     mask_mode,
     read_plates,
     recording_masks,
@@ -294,16 +295,18 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
         scale: image scale in (0, 1]; the rig is scaled with
             :meth:`~torchmocap.cameras.CameraRig.scaled_images`, keypoints with it.
         keypoints: ``source`` (a registered keypoint source,
-            :mod:`torchmocap.data.recordings.keypoints`: ``openpose``; ``auto``: the first
-            whose files every camera has, else none; ``none``), ``format`` (``auto``,
-            ``body_25b``, ``body_25``, ``coco_17``, ``halpe_26``), ``min_confidence``
-            (keypoints below it count as missed: confidence and position 0), and the chosen
-            source's own settings (``openpose``: ``folder``). Defaults:
+            :mod:`torchmocap.data.recordings.keypoints`: ``openpose``, ``mediapipe`` (computed
+            from the frames); ``auto``: the first whose files every camera has, else none;
+            ``none``), ``format`` (``auto``, ``body_25b``, ``body_25``, ``coco_17``,
+            ``halpe_26``, ``mediapipe_33``), ``min_confidence`` (keypoints below it count as
+            missed: confidence and position 0), and the chosen source's own settings
+            (``openpose``: ``folder``; ``mediapipe``: ``cache``, ...). Defaults:
             :data:`~torchmocap.data.recordings.keypoints.KEYPOINT_SETTINGS` and the source's
             config file.
         masks: ``auto`` (mask files when every camera has them, else computed when the
             recording has keypoints or background plates, else none), ``files`` (required),
-            ``compute``, ``none`` (:mod:`torchmocap.data.recordings.mask_source`).
+            ``compute``, ``detector`` (the keypoint detector's person masks), ``none``
+            (:mod:`torchmocap.data.recordings.mask_source`).
         mask_settings: :class:`~torchmocap.data.recordings.masks.MaskSettings` of computed masks
             (their
             dict form without ``scale``: the masks are computed at ``scale``).
@@ -330,12 +333,14 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
         ``calibration_names``, ``frames`` (video / folder per camera), ``frame_indices``,
         ``fps``, ``fps_source``, ``scale``, ``image_sizes`` (decoded, per camera),
         ``calibrated_image_sizes``, ``keypoint_format``, ``keypoint_source`` (the source's
-        name), ``keypoint_report`` (what it read or computed), ``selection``
+        name), ``keypoint_report`` (what it read or computed; with a held-out camera the
+        tracked views' read, that of every view under ``with_heldout_view``), ``selection``
         (per view: people per frame, the chosen person, frames with several people,
         reprojection agreement in px of the full-size images), ``masks`` (the folders or
-        None), ``mask_source`` (``files``, ``computed`` or None), ``mask_report`` (computed
-        masks: :func:`~torchmocap.data.recordings.masks.compute_masks`' report, cache entry,
-        preview),
+        None), ``mask_source`` (``files``, ``computed``, ``detector`` or None), ``mask_report``
+        (computed masks: :func:`~torchmocap.data.recordings.masks.compute_masks`' report,
+        cache entry, preview; detector masks:
+        :func:`~torchmocap.data.recordings.mask_source.detector_masks`'),
         ``background`` (plate paths per camera), ``images_bytes``, ``heldout_camera`` (name
         or None); with keypoints the fitted subject (``subject_skeleton``, ``initial_poses``,
         ``keypoint_map``, ``skeleton_scale``, ``subject_fit``), with masks only a visual-hull
@@ -384,15 +389,18 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
     canvas = _canvas(sources, chosen, scale)
     request = KeypointRequest(files.root, chosen, frames, kp["format"], sources)
     source = choose_keypoint_source(kp, request)
+    mode = mask_mode(masks, chosen, source is not None, files.root, source)
     joints2d, fmt, selection, kp_report = (None, None, None, None) if source is None else \
         _load_keypoints(source, request, kp, rig, scale)
+    request_seen, seen_report = request, kp_report
     if source is not None and h is not None:  # the tracked views' person chosen without it
         request_seen = KeypointRequest(files.root, [chosen[i] for i in seen], frames,
                                        kp["format"], [sources[i] for i in seen])
-        chosen_seen, _, selection, _ = _load_keypoints(source, request_seen, kp,
-                                                       rig.subset(seen), scale)
+        chosen_seen, _, selection, seen_report = _load_keypoints(source, request_seen, kp,
+                                                                 rig.subset(seen), scale)
         joints2d[:, seen] = chosen_seen
-    mode = mask_mode(masks, chosen, source is not None, files.root)
+        # the tracked views' report; the held-out view's detections came from every view
+        kp_report = {**seen_report, "with_heldout_view": kp_report}
     T, C = len(frames), len(chosen)
     images = torch.zeros(T, C, canvas[1], canvas[0], 3, dtype=torch.uint8)
     log.info("loading %d frames x %d views of %dx%d: %.2f GB of images", T, C, *canvas,
@@ -412,7 +420,7 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
         keypoint_format=fmt, keypoint_source=None if source is None else source.name,
         keypoint_report=kp_report, selection=selection,
         masks={c.name: str(c.masks) for c in chosen} if mode == "files" else None,
-        mask_source={"files": "files", "compute": "computed"}.get(mode),
+        mask_source={"files": "files", "compute": "computed", "detector": "detector"}.get(mode),
         background={c.name: [str(p) for p in c.background] for c in chosen},
         images_bytes=images.numel(),
         heldout_camera=None if h is None else chosen[h].name)
@@ -430,6 +438,14 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
     elif mode == "compute":
         seq.silhouettes, meta.mask_report = _computed_masks(
             seq, tracked, seen, h, read_plates(chosen, scale), settings, mask_cache)
+    elif mode == "detector":  # the tracked views' from their own check, as their keypoints
+        seq.silhouettes, meta.mask_report = detector_masks(source, request_seen, seen_report,
+                                                           scale, canvas)
+        if h is not None:  # the held-out view's from the check with every view
+            one = KeypointRequest(files.root, [chosen[h]], frames, kp["format"], [sources[h]])
+            held, _ = detector_masks(source, one, kp_report["with_heldout_view"], scale, canvas)
+            seq.silhouettes = torch.cat([seq.silhouettes, held], 1)[
+                :, [seen.index(c) if c in seen else len(seen) for c in range(C)]]
     if h is not None:
         tracked.silhouettes = None if seq.silhouettes is None else \
             seq.select_cameras(seen).silhouettes
@@ -441,6 +457,11 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
                                    fit_settings, scale))
     elif tracked.silhouettes is not None and tracked.num_cameras >= 2:
         meta.update(hull_start(tracked.rig, tracked.silhouettes[0]))
+    elif tracked.silhouettes is None:
+        meta.subject_fit = {"skipped": "the recording has neither keypoints nor masks (no "
+                                       "pose/ or pose-associated/ files); "
+                                       "data.keypoints.source=mediapipe computes keypoints "
+                                       "from the frames"}
     return seq
 
 

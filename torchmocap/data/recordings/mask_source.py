@@ -10,6 +10,9 @@ computed from its frames with :func:`torchmocap.data.recordings.masks.compute_ma
   there), with the background plates (``background/``) and the subject's keypoints when the
   recording has them; it needs one of the two (the keypoints place the multi-view check and
   gate the components; a plate tells the background where the subject stands still);
+* ``detector``: the person masks of the keypoint source's own detector run
+  (``data.keypoints.source=mediapipe``: the segmentation of each kept detection, inside its
+  region; :func:`detector_masks`) — no plates needed, the same cached run as the keypoints;
 * ``auto``: ``files`` when every camera has a mask folder, else ``compute`` when the recording
   has keypoints or plates, else ``none``;
 * ``none``.
@@ -34,21 +37,34 @@ import torch
 from torchmocap.data.recordings.files import RecordingCamera, RecordingLayoutError
 from torchmocap.data.recordings.masks import MaskSettings, cached_masks, compute_masks, content_key
 
-__all__ = ["MASK_MODES", "check_mask_settings", "mask_mode", "read_plates", "recording_masks"]
+__all__ = ["MASK_MODES", "check_mask_settings", "detector_masks", "mask_mode", "read_plates",
+           "recording_masks"]
 
-MASK_MODES = ("auto", "files", "compute", "none")
+MASK_MODES = ("auto", "files", "compute", "detector", "none")
 
 
-def mask_mode(masks: str, cams: Sequence[RecordingCamera], keypoints: bool, root: Path
-              ) -> str:
-    """``files``, ``compute`` or ``none`` for the ``data.masks`` setting ``masks``.
+def mask_mode(masks: str, cams: Sequence[RecordingCamera], keypoints: bool, root: Path,
+              source: Any = None) -> str:
+    """``files``, ``compute``, ``detector`` or ``none`` for the ``data.masks`` setting
+    ``masks``.
+
+    Args:
+        source: the keypoint source (``detector`` needs one with ``person_masks``).
 
     Raises:
-        ValueError: an unknown mode, or ``compute`` without keypoints or plates.
+        ValueError: an unknown mode, ``compute`` without keypoints or plates, ``detector``
+            with a keypoint source that computes no masks.
         RecordingLayoutError: ``files`` with a camera lacking its mask folder.
     """
     if masks not in MASK_MODES:
         raise ValueError(f"data.masks: expected one of {list(MASK_MODES)}, got {masks!r}")
+    if masks == "detector" and not callable(getattr(source, "person_masks", None)):
+        what = ("no keypoint source is loaded" if source is None else
+                f"the keypoint source {getattr(source, 'name', type(source).__name__)!r} "
+                "reads files and computes no masks")
+        raise ValueError(f"data.masks: detector takes the person masks of a detector run on "
+                         f"the frames (data.keypoints.source=mediapipe), but {what}; set "
+                         "data.masks: compute (background subtraction), files or none")
     plates = any(c.background for c in cams)
     if masks == "auto":
         if all(c.masks for c in cams):
@@ -140,3 +156,23 @@ def recording_masks(images: torch.Tensor, rig, plates: list[torch.Tensor | None]
     if preview.is_file():
         report["preview"] = str(preview)
     return masks, report
+
+
+def detector_masks(source, request, report: Mapping[str, Any], scale: float,
+                   canvas: tuple[int, int]) -> tuple[torch.Tensor, dict]:
+    """Masks ``(T, C, H, W)`` bool of the request's cameras from the keypoint source's detector
+    run (``data.masks=detector``): ``source.person_masks(request, report, scale)`` — per
+    camera ``(T, h, w)`` — placed in the top-left corner of the ``canvas (W, H)`` (views
+    smaller than it by a codec's crop), and a report (``source``, ``mask_fraction`` per
+    camera, ``empty_frames`` per camera: frames without a mask, a view dropped or nobody
+    found)."""
+    per_cam = source.person_masks(request, report, scale)
+    T, C = len(request.frames), len(request.cameras)
+    out = torch.zeros(T, C, canvas[1], canvas[0], dtype=torch.bool)
+    fractions, empty = {}, {}
+    for c, (cam, m) in enumerate(zip(request.cameras, per_cam)):
+        out[:, c, :m.shape[1], :m.shape[2]] = m
+        fractions[cam.name] = round(float(m.float().mean()), 5)
+        empty[cam.name] = [t for t, x in zip(request.frames, m) if not bool(x.any())]
+    return out, {"source": getattr(source, "name", None), "mask_fraction": fractions,
+                 "empty_frames": empty}
