@@ -79,7 +79,7 @@ def run(cfg: DictConfig, out: Path) -> dict:
     every = cfg.get("checkpoint_every", 10)
     check_checkpoint(ckpt, every)
     with reported_warnings("torchmocap-track") as warned:
-        seq = load_sequence(cfg, min_frames=2)
+        seq = load_sequence(cfg, min_frames=2, min_views=2)
         inputs = seq.meta.inputs
         fingerprint = run_fingerprint(settings, inputs)
         tracked, _ = split_heldout(seq)  # the views the tracker sees (all but a held-out camera)

@@ -25,6 +25,7 @@ Example:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -62,11 +63,15 @@ class ReprojectionScores:
     frame_median_px: torch.Tensor
     frame_count: torch.Tensor
 
-    def summary(self) -> dict[str, float]:
-        """The scalar scores as a plain dict (for ``metrics.json``)."""
-        return {"median_px": self.median_px, "mean_px": self.mean_px, "pck_05": self.pck_05,
-                "pck_10": self.pck_10, "num_compared": self.num_compared,
-                "num_missing": self.num_missing}
+    def summary(self) -> dict[str, float | None]:
+        """The scalar scores as a plain dict (for ``metrics.json``; None where nothing was
+        compared: a view without detections)."""
+        def value(x: float) -> float | None:
+            return None if math.isnan(x) else x
+
+        return {"median_px": value(self.median_px), "mean_px": value(self.mean_px),
+                "pck_05": value(self.pck_05), "pck_10": value(self.pck_10),
+                "num_compared": self.num_compared, "num_missing": self.num_missing}
 
 
 def reprojection_scores(points3d: torch.Tensor, detections: torch.Tensor, rig,
@@ -210,8 +215,9 @@ class HeldOutView:
             d = {}
             if scores is not None:
                 d.update(scores.summary())
-                d["median_px"] /= self.pixel_scale
-                d["mean_px"] /= self.pixel_scale
+                for k in ("median_px", "mean_px"):
+                    if d[k] is not None:
+                        d[k] /= self.pixel_scale
             if iou is not None:
                 d["silhouette_iou"] = float(iou.mean())
             return d

@@ -33,6 +33,13 @@ import numpy as np
 import torch
 
 from torchmocap.cameras import CameraError, CameraRig, camera_key, read_calibration
+from torchmocap.data.recordings.checks import (
+    check_camera_choice,
+    check_detections,
+    check_mode,
+    check_views,
+    view_consistency,
+)
 from torchmocap.data.recordings.files import (
     RecordingCamera,
     discover_recording,
@@ -250,14 +257,30 @@ def _canvas(sources: list, cams: list[RecordingCamera], scale: float) -> tuple[i
     return max(w for w, _ in sizes), max(h for _, h in sizes)
 
 
-def _load_keypoints(source: KeypointSource, request: KeypointRequest, kp: dict[str, Any],
-                    rig: CameraRig, scale: float) -> tuple[torch.Tensor, str, dict, dict]:
-    """``joints2d (T, C, K, 3)`` float32 in the scaled images' pixels, the format, the
-    selection report and the source's report."""
+def _read_keypoints(source: KeypointSource, request: KeypointRequest, rig: CameraRig
+                    ) -> tuple[list[list[torch.Tensor]], str, bool, dict]:
+    """The source's detections of every requested view (full-size pixels), checked
+    (:func:`~torchmocap.data.recordings.checks.check_detections`), their format, whether they
+    are associated, and the source's report."""
     det = source.read(request)
-    people, fmt = det.people, det.format
+    names = [c.name for c in request.cameras]
+    folders = det.report.get("folders") if isinstance(det.report, dict) else None
+    # --- checks: the detections (torchmocap.data.recordings.checks) ---
+    people = check_detections(
+        det.people, len(keypoint_format(det.format)), names,
+        [tuple(int(v) for v in s) for s in rig.image_size.tolist()],
+        [str(folders.get(n, "")) for n in names] if isinstance(folders, dict) else None,
+        list(request.frames))
+    return people, det.format, det.associated, det.report
+
+
+def _select_keypoints(people: list[list[torch.Tensor]], fmt: str, associated: bool,
+                      kp: dict[str, Any], rig: CameraRig, names: list[str], scale: float
+                      ) -> tuple[torch.Tensor, dict]:
+    """``joints2d (T, C, K, 3)`` float32 in the scaled images' pixels of the subject chosen
+    among ``people`` (full-size pixels) and the selection report."""
     K = len(keypoint_format(fmt))
-    if not det.associated or any(x.shape[0] > 1 for frame in people for x in frame):
+    if not associated or any(x.shape[0] > 1 for frame in people for x in frame):
         joints, selection = select_person(people, rig, kp["min_confidence"])
         selection["method"] = "triangulation"
     else:
@@ -268,11 +291,11 @@ def _load_keypoints(source: KeypointSource, request: KeypointRequest, kp: dict[s
         joints = torch.where(low[..., None], torch.zeros_like(joints), joints)
         agree = person_agreement(joints, rig)
         selection = {"method": "associated", "views": {
-            cam.name: {"people": [int(frame[c].shape[0]) for frame in people],
-                       "agreement_px": [None if math.isnan(v) else round(v, 2)
-                                        for v in agree[:, c].tolist()]}
-            for c, cam in enumerate(request.cameras)}}
-    return _scale_joints(joints, scale).float(), fmt, selection, det.report
+            name: {"people": [int(frame[c].shape[0]) for frame in people],
+                   "agreement_px": [None if math.isnan(v) else round(v, 2)
+                                    for v in agree[:, c].tolist()]}
+            for c, name in enumerate(names)}}
+    return _scale_joints(joints, scale).float(), selection
 
 
 @data_source(provides=("images", "silhouettes", "joints2d", "rig"),
@@ -283,7 +306,8 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
                    masks: str = "auto", mask_settings: Mapping[str, Any] | None = None,
                    mask_cache: str | Path | None = None, subject: Mapping[str, Any] | None = None,
                    heldout_camera: str | int | None = None,
-                   fps: float | None = None, unit: str | float | None = None, seed: int = 0):
+                   fps: float | None = None, unit: str | float | None = None,
+                   checks: str = "refuse", min_views: int = 0, seed: int = 0):
     """A recording folder as a :class:`~torchmocap.data.Sequence` (``scenario="recorded"``).
 
     Args:
@@ -318,6 +342,12 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
         fps: frame rate of image folders (videos carry theirs; default 25 with a warning).
         unit: length unit of the calibration's translations; None = the format's default
             (TOML and intri/extri metres, Bouguet millimetres).
+        checks: ``refuse`` (default) or ``warn``: what views that disagree with the others
+            and a subject whose triangulated size is not a person's are
+            (:mod:`~torchmocap.data.recordings.checks`; the report is
+            ``meta.view_consistency``).
+        min_views: tracked views the caller needs (the commands: 2, to triangulate the
+            subject); fewer are refused before anything is read.
         seed: unused (loading is deterministic); accepted like every data source's.
 
     Returns:
@@ -362,6 +392,10 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
     files = discover_recording(path)
     chosen = _choose_cameras(files.cameras, cameras)
     h = _heldout_index(chosen, files.cameras, heldout_camera)
+    # --- checks: enough tracked views, the check mode (torchmocap.data.recordings.checks) ---
+    check_camera_choice([c.name for c in chosen], None if h is None else chosen[h].name,
+                        min_views)
+    check_mode(checks)
     seen = [i for i in range(len(chosen)) if i != h]
     kp = keypoint_settings(keypoints)
     fit_settings = subject_settings(subject)
@@ -373,6 +407,9 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
         frames = check_frame_range(length, start, stop, stride, scale, "the recording")
     except ValueError as e:
         raise ValueError(f"data.{e}") from None
+    for src in sources:  # numbered images pair by number: a gap is refused, never shifted
+        if hasattr(src, "check_complete"):
+            src.check_complete(frames.start, frames.stop, frames.step)
     if fps_source == "default" and len(frames) > 1:
         warnings.warn(f"{files.root}: image folders carry no frame rate; using "
                       f"{DEFAULT_FPS:g} fps (set data.fps)", stacklevel=2)
@@ -384,14 +421,23 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
     canvas = _canvas(sources, chosen, scale)
     request = KeypointRequest(files.root, chosen, frames, kp["format"], sources)
     source = choose_keypoint_source(kp, request)
-    joints2d, fmt, selection, kp_report = (None, None, None, None) if source is None else \
-        _load_keypoints(source, request, kp, rig, scale)
+    joints2d, fmt, selection, kp_report, consistency = None, None, None, None, None
+    names = [c.name for c in chosen]
+    if source is not None:
+        people, fmt, associated, kp_report = _read_keypoints(source, request, rig)
+        joints2d, selection = _select_keypoints(people, fmt, associated, kp, rig, names, scale)
     if source is not None and h is not None:  # the tracked views' person chosen without it
-        request_seen = KeypointRequest(files.root, [chosen[i] for i in seen], frames,
-                                       kp["format"], [sources[i] for i in seen])
-        chosen_seen, _, selection, _ = _load_keypoints(source, request_seen, kp,
-                                                       rig.subset(seen), scale)
+        chosen_seen, selection = _select_keypoints(
+            [[frame[i] for i in seen] for frame in people], fmt, associated, kp,
+            rig.subset(seen), [names[i] for i in seen], scale)
         joints2d[:, seen] = chosen_seen
+    if joints2d is not None:
+        # --- checks: the views' agreement and the units (torchmocap.data.recordings.checks) ---
+        first = min(int(fit_settings["frames"]), len(frames))
+        consistency = view_consistency(joints2d[:first], rig.scaled_images(scale), names,
+                                       scale, list(frames)[:first],
+                                       None if h is None else names[h])
+        check_views(consistency, checks, unit, files.calibration)
     mode = mask_mode(masks, chosen, source is not None, files.root)
     T, C = len(frames), len(chosen)
     images = torch.zeros(T, C, canvas[1], canvas[0], 3, dtype=torch.uint8)
@@ -415,7 +461,8 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
         mask_source={"files": "files", "compute": "computed"}.get(mode),
         background={c.name: [str(p) for p in c.background] for c in chosen},
         images_bytes=images.numel(),
-        heldout_camera=None if h is None else chosen[h].name)
+        heldout_camera=None if h is None else chosen[h].name,
+        view_consistency=consistency)
     seq = Seq(fps=rate, scenario="recorded", rig=rig.scaled_images(scale).float(),
               view_dropped=torch.zeros(T, C, dtype=torch.bool), images=images,
               joints2d=joints2d, joint_names=[] if fmt is None else list(keypoint_format(fmt)),
