@@ -92,8 +92,9 @@ def evaluate_track(seq, runtime, tracker, track, energy_vs_truth: bool = False,
         ``estimate_energy_below_truth``; without ground truth ``silhouette_iou``; with 2D
         joints ``reprojection_px``; the sequence's ``hull_top_m``, ``skeleton_scale``,
         ``source``, ``subject_fit`` and ``view_consistency`` when it has them; without ground
-        truth, over 3 frames or more, ``consistency`` (:func:`~torchmocap.evaluation.track_consistency`: bone-length CV and
-        jitter of the mapped keypoints, or of the joints); with a keypoint map, the track's
+        truth, over 3 frames or more, ``consistency``
+        (:func:`~torchmocap.evaluation.track_consistency`: bone-length CV and jitter of the
+        mapped keypoints, or of the joints); with a keypoint map, the track's
         scores in each tracked view's detections (``tracked_views``: median px of the full-size
         images, PCK) and with ``heldout`` those in the held-out view (``heldout``:
         :meth:`~torchmocap.evaluation.HeldOutView.summary`, with the first pose held beside

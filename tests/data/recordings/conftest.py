@@ -45,8 +45,8 @@ def set_translation(root: Path, cam: str, t: tuple[float, float, float]) -> None
     def fn(text):
         parts = _sections(text)
         i = next(i for i, s in enumerate(parts) if s.startswith(f"[{cam}]"))
-        parts[i] = re.sub(r"translation = \[[^\]]*\]", "translation = [ %r, %r, %r]" % t,
-                          parts[i])
+        values = ", ".join(repr(float(x)) for x in t)
+        parts[i] = re.sub(r"translation = \[[^\]]*\]", f"translation = [ {values}]", parts[i])
         return "".join(parts)
     _edit_toml(root, fn)
 
