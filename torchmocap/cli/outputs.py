@@ -152,7 +152,8 @@ def _recording_rows(m: dict) -> list[tuple[str, str]]:
     """Summary rows of a track without ground truth: the scores in the held-out view (and of
     the first pose held), in the tracked views, bone-length CV and jitter."""
     def px(d: dict) -> str:
-        iou = f", IoU {d['silhouette_iou']:.3f}" if "silhouette_iou" in d else ""
+        iou = "" if "silhouette_iou" not in d else ", IoU -" if d["silhouette_iou"] is None \
+            else f", IoU {d['silhouette_iou']:.3f}"
         if "median_px" not in d:
             return iou[2:] or "-"
         if d["median_px"] is None:

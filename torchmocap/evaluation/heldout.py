@@ -186,8 +186,8 @@ class HeldOutView:
             (pixels of the full-size images).
         scores: the track's :class:`ReprojectionScores` (``None`` without detections).
         hold_first_pose: the same of a do-nothing track that keeps the first pose.
-        silhouette_iou: ``(T,)`` IoU of the capsule body with the view's masks (None without
-            masks).
+        silhouette_iou: ``(T,)`` IoU of the capsule body with the view's masks (NaN where the
+            mask is empty; None without masks).
         hold_first_iou: the same of the first pose held.
         mapping: ``{detector keypoint: {joint, frame, offset}}``: which model point each
             compared detection is compared with (joint + offset in the frame joint's bone
@@ -218,8 +218,9 @@ class HeldOutView:
                 for k in ("median_px", "mean_px"):
                     if d[k] is not None:
                         d[k] /= self.pixel_scale
-            if iou is not None:
-                d["silhouette_iou"] = float(iou.mean())
+            if iou is not None:  # None: the view's masks are empty in every frame
+                d["silhouette_iou"] = None if bool(iou.isnan().all()) else \
+                    float(iou.nanmean())
             return d
 
         out.update(part(self.scores, self.silhouette_iou))
@@ -303,11 +304,14 @@ def heldout_view_scores(seq, runtime, theta: torch.Tensor, camera: int | str = 0
                 return render_capsule_silhouettes(runtime.body, rig,
                                                   th.to(sk.offsets.dtype))[:, :H, :W]
 
-            iou = torch.stack([silhouette_iou(model(theta[t]), masks[t:t + 1])[0]
-                               for t in range(T)])
+            # a frame whose mask is empty has no silhouette to score (NaN), not an IoU of 0
+            empty = ~masks.flatten(1).any(-1)
+            nan = torch.tensor(float("nan"), dtype=torch.float64)
+            iou = torch.stack([nan if empty[t] else silhouette_iou(
+                model(theta[t]), masks[t:t + 1])[0] for t in range(T)])
             start = model(theta[0])
-            iou_first = torch.stack([silhouette_iou(start, masks[t:t + 1])[0]
-                                     for t in range(T)])
+            iou_first = torch.stack([nan if empty[t] else silhouette_iou(
+                start, masks[t:t + 1])[0] for t in range(T)])
     scale = 1.0 if seq.meta.scale is None else seq.meta.scale
     return HeldOutView(camera=names[camera], pixel_scale=float(scale), scores=scores,
                        hold_first_pose=first, silhouette_iou=iou, hold_first_iou=iou_first,

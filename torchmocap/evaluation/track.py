@@ -150,7 +150,8 @@ def evaluate_track(seq, runtime, tracker, track, energy_vs_truth: bool = False,
     else:
         metrics["silhouette_iou"] = iou = silhouette_agreement(seq, runtime.body, runtime.rig,
                                                                track.theta)
-        if iou:  # no truth: an IoU far below a fit's is the sign of wrong masks or cameras
+        if iou and iou["mean_over_frames"] is not None:  # no truth: an IoU far below a
+            # fit's is the sign of wrong masks or cameras
             check_fit_iou(iou["mean_over_frames"], "silhouette_iou", EvaluationWarning)
     if seq.joints2d is not None and runtime.rig is not None:
         metrics["reprojection_px"] = reprojection_error(seq, sk, runtime.rig, track.theta)

@@ -60,6 +60,11 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v")
 
 
+#: codecs of still images (ffmpeg's names): such a "video" is one picture
+_IMAGE_CODECS = {"png", "bmp", "tiff", "webp", "jpeg2000", "jpegls", "qoi", "ppm", "pgm",
+                 "pam", "pbm"}
+
+
 class FrameSourceError(ValueError):
     """A video or image folder cannot be read as frames (names the file)."""
 
@@ -203,6 +208,12 @@ class VideoFrames:
         self.fps = fps
         self.codec = str(meta.get("codec", "?"))
         self.num_frames = self._count_frames()
+        codec = self.codec.split(",")[0].strip().lower()
+        if codec in _IMAGE_CODECS or (self.num_frames == 1 and not meta.get("duration")):
+            raise FrameSourceError(
+                f"{self.path}: a single {codec.upper()} image, not a video (one frame, no "
+                "duration); a camera's frames are a video, or a folder of images "
+                "(images/<cam>/000000.png, ...)")
 
     def _count_frames(self) -> int:
         cmd = [self._exe, "-hide_banner", "-nostdin", "-i", str(self.path), "-map", "0:v:0",

@@ -72,6 +72,54 @@ def map_keypoints(root: Path, cam: str, fn) -> None:
     edit_people(root, cam, people)
 
 
+def scale_camera(root: Path, cam: str, factor: float) -> None:
+    """Camera ``cam``'s calibration for images scaled by ``factor`` (size and intrinsics,
+    the pixel-centre convention ``u' + 0.5 = factor (u + 0.5)``)."""
+    def fn(text):
+        parts = _sections(text)
+        i = next(i for i, s in enumerate(parts) if s.startswith(f"[{cam}]"))
+        sec = parts[i]
+        w, h = (float(v) for v in re.search(r"size = \[([^\]]*)\]", sec).group(1).split(","))
+        K = [float(v) for v in re.findall(r"[-\d.e+]+", re.search(
+            r"matrix = (\[.*\]\])", sec).group(1))]
+        fx, cx, fy, cy = (K[0] * factor, (K[2] + 0.5) * factor - 0.5, K[4] * factor,
+                          (K[5] + 0.5) * factor - 0.5)
+        sec = re.sub(r"size = \[[^\]]*\]", f"size = [ {w * factor}, {h * factor}]", sec)
+        sec = re.sub(r"matrix = \[.*\]\]", f"matrix = [ [ {fx}, 0.0, {cx}], [ 0.0, {fy}, "
+                     f"{cy}], [ 0.0, 0.0, 1.0]]", sec)
+        parts[i] = sec
+        return "".join(parts)
+    _edit_toml(root, fn)
+
+
+def set_size(root: Path, cam: str, size: tuple[int, int]) -> None:
+    def fn(text):
+        parts = _sections(text)
+        i = next(i for i, s in enumerate(parts) if s.startswith(f"[{cam}]"))
+        parts[i] = re.sub(r"size = \[[^\]]*\]", f"size = [ {size[0]}.0, {size[1]}.0]", parts[i])
+        return "".join(parts)
+    _edit_toml(root, fn)
+
+
+def half_size_video(root: Path, cam: str) -> None:
+    """Re-encode ``videos/<cam>.mp4`` at half its size (H.264)."""
+    import subprocess
+
+    import imageio_ffmpeg
+
+    src = root / "videos" / f"{cam}.mp4"
+    tmp = root / "videos" / f"{cam}.half.mp4"
+    subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-loglevel", "error",
+                    "-y", "-i", str(src), "-vf", "scale=iw/2:ih/2", "-c:v", "libx264",
+                    "-crf", "18", "-pix_fmt", "yuv420p", str(tmp)], check=True)
+    tmp.replace(src)
+    from PIL import Image
+
+    for plate in (root / "background").glob(f"{cam}*"):
+        with Image.open(plate) as im:
+            im.resize((im.width // 2, im.height // 2)).save(plate)
+
+
 def swap_detections(root: Path, a: str = "cam01", b: str = "cam02") -> None:
     for kind in ("pose-associated", "pose"):
         da, db, tmp = (root / kind / f"{a}_json", root / kind / f"{b}_json",
@@ -105,8 +153,7 @@ def broken(tmp_path, shared_data):
 
     def make(kind: str = "intact") -> Path:
         root = tmp_path / kind
-        shutil.copytree(src, root, ignore=shutil.ignore_patterns("pose2sim_output",
-                                                                 "background"))
+        shutil.copytree(src, root, ignore=shutil.ignore_patterns("pose2sim_output"))
         if kind == "millimetres":
             scale_translations(root, 1000.0)
         elif kind == "calibrations_exchanged":
@@ -129,6 +176,20 @@ def broken(tmp_path, shared_data):
         elif kind == "image_gap":
             to_image_folders(root, 5)
             (root / "images" / "cam02" / "000002.jpg").unlink()
+        elif kind == "half_resolution_camera":  # cam04 recorded at 544x960, calibrated so
+            half_size_video(root, "cam04")
+            scale_camera(root, "cam_04", 0.5)
+            map_keypoints(root, "cam04", lambda u, v, c: ((u + 0.5) / 2 - 0.5,
+                                                          (v + 0.5) / 2 - 0.5, c))
+        elif kind == "calibration_4k":  # cam03 calibrated on 2176x3840 images
+            scale_camera(root, "cam_03", 2.0)
+        elif kind == "size_12px":  # cam03's calibration 12 columns wider than its frames
+            set_size(root, "cam_03", (1100, 1920))
+        elif kind == "png_video":
+            from PIL import Image
+
+            Image.new("RGB", (1080, 1920)).save(root / "videos" / "frame.png")
+            (root / "videos" / "frame.png").replace(root / "videos" / "cam02.mp4")
         elif kind != "intact":
             raise ValueError(kind)
         return root

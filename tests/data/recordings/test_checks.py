@@ -11,6 +11,7 @@ import warnings
 import pytest
 import torch
 
+from torchmocap.cameras import CameraError, read_toml_calibration
 from torchmocap.data.recordings.checks import (
     MAX_VIEW_RESIDUAL,
     STATURE_RANGE_M,
@@ -24,6 +25,12 @@ from torchmocap.io.frames import FrameSourceError, ImageFolderFrames
 pytestmark = pytest.mark.filterwarnings("ignore:.*codec's crop")
 KW = {"masks": "none", "scale": 0.25, "stop": 4}
 CAMS = ["cam01", "cam02", "cam03", "cam04"]
+
+
+@pytest.fixture
+def p2s_calibration(shared_data):
+    return read_toml_calibration(shared_data / "multiview" / "pose2sim_balancing" /
+                                 "calibration" / "Calib.toml")
 
 
 def _load(path, **kw):
@@ -207,3 +214,68 @@ class TestImageFolders:
         Image.fromarray(np.zeros((4, 6, 3), np.uint8)).save(folder / "im6.png")
         with pytest.raises(FrameSourceError, match="im06.png and im6.png are both frame 6"):
             ImageFolderFrames(folder)
+
+
+class TestSizes:
+    def test_feature_a_camera_at_half_resolution(self, broken):
+        """cam04 recorded at 544x960 with a calibration of its own size: loaded beside the
+        1088x1920 views (its images in the tensor's top-left corner), consistent with them."""
+        root = broken("half_resolution_camera")
+        seq, said = _load(root, stop=2)
+        assert said == []
+        assert seq.rig.image_size.tolist()[3] == [136, 240]
+        assert seq.images.shape[2:4] == (480, 272)
+        assert int(seq.images[:, 3, 240:].max()) == 0 and int(seq.images[:, 3, :, 136:].max()) \
+            == 0 and float(seq.images[:, 3, :240, :136].float().mean()) > 20
+        assert seq.meta.image_sizes["cam04"] == [544, 960]
+        r = seq.meta.view_consistency
+        assert r["consistent_views"] == CAMS
+        assert 300 < r["views"]["cam04"]["subject_px"] < 500  # its own pixels
+
+    @pytest.mark.slow
+    def test_feature_half_resolution_camera_through_a_track(self, broken, tmp_path):
+        """Every consumer of the views' sizes on that recording: computed masks, the
+        silhouette and keypoint terms, the held-out and tracked scores, the overlays."""
+        from hydra import compose, initialize_config_module
+        from hydra.core.global_hydra import GlobalHydra
+        from PIL import Image
+
+        from torchmocap.cli.track import run
+
+        root = broken("half_resolution_camera")
+        GlobalHydra.instance().clear()
+        with initialize_config_module(config_module="torchmocap.conf", version_base="1.3"):
+            cfg = compose(config_name="track", overrides=[
+                "data=recording", f"data.path={root}", "data.stop=3", "data.scale=0.25",
+                "data.mask_cache=null", "tracker=real_keypoints", "tracker.num_particles=30",
+                "tracker.inference.layers=3", "evaluation.heldout_camera=cam04",
+                "overlays=1", "glb.enabled=false", "progress=false", "threads=1"])
+        out = tmp_path / "run"
+        out.mkdir()
+        m = run(cfg, out)
+        h = m["heldout"]
+        assert h["camera"] == "cam04" and h["median_px"] < 60 and h["pck_10"] > 0.8
+        assert 0.3 < h["silhouette_iou"] < 1.0
+        assert all(v["median_px"] < 60 for v in m["tracked_views"].values())
+        (grid,) = out.glob("overlay_*.png")
+        with Image.open(grid) as im:
+            assert im.size == (544, 20 + 960)
+
+    def test_feature_calibration_at_another_resolution(self, broken, p2s_calibration):
+        seq, said = _load(broken("calibration_4k"), stop=2, scale=1.0)
+        assert len(said) == 1 and "the calibration (cam_03) is of 2176x3840 images, the same " \
+            "aspect ratio: its intrinsics are scaled by 0.5" in said[0]
+        torch.testing.assert_close(seq.rig.K[2], p2s_calibration.K[2].float(), rtol=1e-6,
+                                   atol=1e-3)
+        assert seq.meta.view_consistency["consistent_views"] == CAMS
+
+    def test_exception_not_a_codec_crop(self, broken):
+        with pytest.raises(CameraError, match=r"frames are 1088x1920 but the calibration .*"
+                                              r"says 1100x1920; the calibration is of other "
+                                              r"images \(not a codec's crop"):
+            load_recording(broken("size_12px"), **KW)
+
+    def test_exception_an_image_named_as_a_video(self, broken):
+        with pytest.raises(FrameSourceError, match=r"cam02\.mp4: a single PNG image, not a "
+                                                   r"video"):
+            load_recording(broken("png_video"), **KW)

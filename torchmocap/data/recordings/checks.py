@@ -83,6 +83,9 @@ MIN_POINTS = 10
 #: a camera whose calibrated distance to the subject differs from the one its images show
 #: (focal length x subject size / size in the image) by more than this factor is named
 DISTANCE_FACTOR = 2.0
+#: the subject's size (pixels of the scaled images) below which masks and silhouette scores
+#: are not worth computing: a warning names ``data.scale``
+MIN_SUBJECT_PX = 48
 #: views up to which every subset is tried (more: views dropped one at a time, worst first)
 EXHAUSTIVE_VIEWS = 8
 #: metres per unit of the calibration formats' default units, by file suffix
@@ -357,7 +360,7 @@ def view_consistency(joints: Tensor, rig, names: Sequence[str], pixel_scale: flo
                    "stature_m": list(STATURE_RANGE_M),
                    "relative_to": "the subject's size in the view (the larger side of its "
                                   "keypoints' box, median over the frames)"},
-        "min_confidence": MIN_CONFIDENCE,
+        "min_confidence": MIN_CONFIDENCE, "image_scale": pixel_scale,
         "consistent_views": [names[c] for c in ref],
         "stature_m": None, "views": {},
     }
@@ -512,6 +515,13 @@ def check_views(report: dict[str, Any], mode: str = "refuse", unit=None,
                 if len(keep) >= 2 else "; fix them")
         problems.append(head + ("; " + "; ".join(f"{c}" for c in causes) if causes else "")
                         + hint)
+    sizes = [e["subject_px"] for e in views.values() if e.get("subject_px")]
+    scale = report.get("image_scale") or 1.0
+    if sizes and max(sizes) * scale < MIN_SUBJECT_PX:
+        warnings.warn(f"data.scale={scale:g}: the subject is at most {max(sizes) * scale:.0f} "
+                      f"px tall in the scaled images; masks and silhouette scores need about "
+                      f"{MIN_SUBJECT_PX} px (data.scale >= {MIN_SUBJECT_PX / max(sizes):.2g})",
+                      stacklevel=3)
     if not problems:
         return
     if mode == "refuse":

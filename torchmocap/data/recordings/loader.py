@@ -6,12 +6,15 @@ image folder per camera, optional OpenPose keypoints, masks and background plate
 
 * every chosen camera has a calibration entry (matched by the number in its name, refused when
   missing or ambiguous);
-* the calibrated image size is the decoded one — except a codec's macroblock crop (fewer than
-  16 pixels missing at the right or bottom edge, e.g. a 1088-row H.264 stream cropped to 1080):
-  accepted with a warning, the camera keeps the decoded size (its intrinsics are unchanged);
+* the calibrated image size is the decoded one — except a codec's macroblock crop (the
+  calibrated size is the decoded one rounded up to a multiple of 16, e.g. a 1088-row H.264
+  stream cropped to 1080): accepted with a warning, the camera keeps the decoded size (its
+  intrinsics are unchanged); and a calibration of the same aspect ratio at another resolution
+  (a 4K calibration of 1088x1920 videos): its intrinsics are scaled, with a warning;
 * the videos have one frame rate and (unless ``stop`` stays within the shortest) one length;
-  views whose sizes differ by such a crop share one image tensor, the smaller ones padded
-  with black at the right/bottom (``meta.image_sizes`` has each view's own size);
+  views of different sizes (a codec's crop, cameras of other resolutions) share one image
+  tensor, the smaller ones padded with black at the right/bottom (``rig.image_size`` and
+  ``meta.image_sizes`` have each view's own size);
 * keypoint files exist for every loaded frame and are of the declared format.
 
 Memory: the images are ``T × C × H × W × 3`` bytes at the working scale — 100 frames of 4
@@ -76,7 +79,8 @@ __all__ = ["CROP_TOLERANCE", "load_recording"]
 
 log = logging.getLogger(__name__)
 
-#: pixels a decoded frame may lack at the right / bottom edge (a codec's macroblock crop)
+#: a codec's macroblock size: a decoded frame may lack the pixels that pad its size to a
+#: multiple of it at the right / bottom edge (a codec's crop)
 CROP_TOLERANCE = 16
 #: frame rate of image folders without ``fps``
 DEFAULT_FPS = 25.0
@@ -180,23 +184,46 @@ def _match_calibration(rig: CameraRig, cams: list[RecordingCamera], path: Path) 
     return idx
 
 
+def _codec_crop(calibrated: int, decoded: int) -> bool:
+    """Whether ``decoded`` pixels are a codec's crop of ``calibrated``: the encoder pads a
+    frame to a multiple of :data:`CROP_TOLERANCE` (its macroblocks) and the decoder crops the
+    padding again, so the calibrated size is the decoded one rounded up to that multiple."""
+    m = CROP_TOLERANCE
+    return calibrated == decoded or (calibrated % m == 0 and calibrated == -(-decoded // m) * m)
+
+
 def _check_sizes(rig: CameraRig, sources: list, cams: list[RecordingCamera], calib: Path
                  ) -> CameraRig:
-    """The rig with each camera's decoded size (crop accepted with a warning)."""
-    sizes = []
+    """The rig with each camera's decoded size: a codec's crop accepted with a warning (the
+    intrinsics unchanged), a calibration of the same aspect ratio at another resolution scaled
+    with a warning, any other size refused."""
+    sizes, K = [], rig.K.clone()
     for c, (src, cam) in enumerate(zip(sources, cams)):
         W, H = (int(v) for v in rig.image_size[c].tolist())
         w, h = src.size
         if (w, h) != (W, H):
-            if not (0 <= W - w < CROP_TOLERANCE and 0 <= H - h < CROP_TOLERANCE):
-                raise CameraError(f"{cam.frames}: frames are {w}x{h} but the calibration "
-                                  f"({calib}, {rig.names[c]}) says {W}x{H}; the calibration "
-                                  "is of other images")
-            warnings.warn(f"{cam.frames}: frames are {w}x{h}, the calibration ({rig.names[c]}) "
-                          f"says {W}x{H}: a codec's crop of {W - w} columns / {H - h} rows at "
-                          f"the right / bottom edge; using {w}x{h}", stacklevel=3)
+            if _codec_crop(W, w) and _codec_crop(H, h):
+                warnings.warn(f"{cam.frames}: frames are {w}x{h}, the calibration "
+                              f"({rig.names[c]}) says {W}x{H}: a codec's crop of {W - w} "
+                              f"columns / {H - h} rows at the right / bottom edge (assumed: the "
+                              f"video was coded at {W}x{H}, the next multiple of "
+                              f"{CROP_TOLERANCE} pixels, and cropped); using {w}x{h} with the "
+                              "intrinsics unchanged", stacklevel=3)
+            elif W * h == H * w:
+                f = w / W
+                K[c] = rig.subset([c]).scaled_images(f).K[0]
+                warnings.warn(f"{cam.frames}: frames are {w}x{h}, the calibration "
+                              f"({rig.names[c]}) is of {W}x{H} images, the same aspect ratio: "
+                              f"its intrinsics are scaled by {f:g} (assumed: the same camera "
+                              "and lens recorded at another resolution)", stacklevel=3)
+            else:
+                raise CameraError(
+                    f"{cam.frames}: frames are {w}x{h} but the calibration ({calib}, "
+                    f"{rig.names[c]}) says {W}x{H}; the calibration is of other images (not a "
+                    f"codec's crop, which lacks fewer than {CROP_TOLERANCE} pixels of a multiple "
+                    f"of {CROP_TOLERANCE}, nor another resolution of the same aspect ratio)")
         sizes.append((w, h))
-    return CameraRig(rig.K, rig.R, rig.t, sizes, rig.dist, [c.name for c in cams])
+    return CameraRig(K, rig.R, rig.t, sizes, rig.dist, [c.name for c in cams])
 
 
 def _check_streams(sources: list, cams: list[RecordingCamera], fps, stop) -> tuple[float, int,
@@ -245,14 +272,10 @@ def _scale_joints(joints: torch.Tensor, scale: float) -> torch.Tensor:
     return torch.where(seen, torch.cat([uv, joints[..., 2:3]], -1), torch.zeros_like(joints))
 
 
-def _canvas(sources: list, cams: list[RecordingCamera], scale: float) -> tuple[int, int]:
-    """``(W, H)`` of the image tensor: the largest scaled view; views may be smaller only by
-    a codec's crop (they are padded at the right / bottom)."""
-    biggest = [max(s.size[i] for s in sources) for i in (0, 1)]
-    if any(b - v >= CROP_TOLERANCE for s in sources for b, v in zip(biggest, s.size)):
-        raise FrameSourceError(
-            "views of different image sizes cannot share one image tensor: " + ", ".join(
-                f"{c.frames} {s.size[0]}x{s.size[1]}" for s, c in zip(sources, cams)))
+def _canvas(sources: list, scale: float) -> tuple[int, int]:
+    """``(W, H)`` of the image tensor: the largest scaled view; smaller views (a codec's crop,
+    a camera of another resolution) fill its top-left corner, padded black at the right /
+    bottom (``rig.image_size`` and ``meta.image_sizes`` keep each view's own size)."""
     sizes = [scaled_size(s.size, scale) for s in sources]
     return max(w for w, _ in sizes), max(h for _, h in sizes)
 
@@ -418,7 +441,7 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
     calibrated = full.subset(idx)
     rig = _check_sizes(calibrated, sources, chosen, files.calibration)
 
-    canvas = _canvas(sources, chosen, scale)
+    canvas = _canvas(sources, scale)
     request = KeypointRequest(files.root, chosen, frames, kp["format"], sources)
     source = choose_keypoint_source(kp, request)
     joints2d, fmt, selection, kp_report, consistency = None, None, None, None, None
