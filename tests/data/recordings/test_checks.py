@@ -194,7 +194,7 @@ class TestImageFolders:
                                                    r"images are numbered 0\.\.4; number\(s\) 2 "
                                                    r"missing\).*data\.stop=2"):
             load_recording(root, **KW)
-        seq = load_recording(root, **{**KW, "stop": 2})  # before the gap
+        seq = load_recording(root, **{**KW, "stop": 2, "fps": 60})  # before the gap
         assert seq.num_frames == 2
 
     def test_feature_numbered_frames_pair_by_number(self, tmp_path):
