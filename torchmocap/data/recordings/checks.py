@@ -57,6 +57,7 @@ __all__ = [
     "check_detections",
     "check_mode",
     "check_views",
+    "mask_consistency",
     "view_consistency",
 ]
 
@@ -88,6 +89,15 @@ DISTANCE_FACTOR = 2.0
 MIN_SUBJECT_PX = 48
 #: views up to which every subset is tried (more: views dropped one at a time, worst first)
 EXHAUSTIVE_VIEWS = 8
+#: masks-only recordings: the fraction of a view's foreground that the visual hull of the
+#: other views covers (intact bodytrack frame: at least 0.83 in every set of three or four
+#: views; two cameras' calibrations exchanged: every set holding one has a view at 0.59 or
+#: less; a camera 1 km away: 0). Masks say less than keypoints: the margin is 1.2 x each side
+MIN_MASK_AGREEMENT = 0.7
+#: the voxel of those hulls (metres; coarse: a check, not the subject's start)
+HULL_VOXEL_M = 0.08
+#: the room the hulls are carved in (metres, the subject near the origin, z up)
+HULL_BOUNDS = [[-3.0, 3.0], [-3.0, 3.0], [-0.1, 2.3]]
 #: metres per unit of the calibration formats' default units, by file suffix
 _DEFAULT_UNITS = {".toml": 1.0, ".yml": 1.0, ".yaml": 1.0, ".json": 1.0, ".cal": 0.001}
 _UNIT_NAMES = {"m": 1.0, "dm": 0.1, "cm": 0.01, "mm": 0.001, "in": 0.0254}
@@ -354,6 +364,7 @@ def view_consistency(joints: Tensor, rig, names: Sequence[str], pixel_scale: flo
                 math.isfinite(float(v.size[c]))]
     ref = _consistent_set(v, measured)
     report: dict[str, Any] = {
+        "method": "keypoints",
         "frames": list(frames) if frames is not None else list(range(T)),
         "heldout_camera": heldout,
         "limits": {"view": MAX_VIEW_RESIDUAL, "pair": MAX_PAIR_RESIDUAL,
@@ -444,6 +455,122 @@ def _cause(v: _Views, c: int, ref: list[int], measured: list[int], names: list[s
             "or other frames)")
 
 
+def _hull_points(rig, masks: Tensor, views: Sequence[int], voxel: float) -> Tensor:
+    """``(M, 3)`` voxel centres of the largest component of the hull of ``views``' masks."""
+    from torchmocap.cameras import visual_hull
+
+    idx = list(views)
+    hull = visual_hull(rig.subset(idx), masks[idx], HULL_BOUNDS, voxel)
+    return hull.largest_component().centers().to(torch.float64)
+
+
+def _mask_agreement(rig, masks: Tensor, points: Tensor, c: int) -> tuple[float, float]:
+    """How view ``c``'s mask and the ``points`` (a hull of other views) agree: the fraction of
+    the points projecting onto its foreground (precision) and of its foreground within a few
+    pixels of a projected point (coverage)."""
+    import torch.nn.functional as F
+
+    W, H = (int(v) for v in rig.image_size[c].tolist())
+    mask = masks[c, :H, :W].bool()
+    if points.shape[0] == 0:
+        return 0.0, 0.0
+    pix, _, vis = rig.subset([c]).project(points)
+    uv = pix[0].round().long()
+    inside = vis[0] & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+    on = torch.zeros(points.shape[0], dtype=torch.bool)
+    on[inside] = mask[uv[inside, 1], uv[inside, 0]]
+    hit = torch.zeros(H, W)
+    hit[uv[inside, 1], uv[inside, 0]] = 1.0
+    # a voxel's footprint: about its size in pixels at the subject's depth
+    depth = float(rig.subset([c]).project(points.mean(0, keepdim=True))[1][0, 0])
+    r = max(1, round(float(rig.K[c, 0, 0]) * HULL_VOXEL_M / max(depth, 1e-6) / 2))
+    hit = F.max_pool2d(hit[None, None], 2 * r + 1, 1, r)[0, 0] > 0
+    coverage = float((hit & mask).sum()) / max(1, int(mask.sum()))
+    return float(on.double().mean()), coverage
+
+
+def mask_consistency(masks: Tensor, rig, names: Sequence[str], heldout: str | None = None
+                     ) -> dict[str, Any]:
+    """Each view's agreement with the others in a masks-only recording: its mask against the
+    visual hull of the other views' masks (:data:`HULL_VOXEL_M` voxels), projected into it.
+    A hull contains the body, so with consistent calibrations and masks it covers the view's
+    foreground: the fraction covered is the view's ``agreement`` (the fraction of the hull on
+    the foreground, ``precision``, says how tight the hull is, not whether it is right: two
+    views facing each other carve a loose one). The reference is the largest set of three views
+    or more whose every view agrees at :data:`MIN_MASK_AGREEMENT` or more with the others of
+    the set; the report is that of :func:`view_consistency` (``method: masks``).
+
+    Args:
+        masks: ``(C, H, W)`` one frame's masks; rig: the ``C`` views; names: their names.
+        heldout: the held-out camera's name (reported).
+    """
+    rig = copy.deepcopy(rig).double()
+    C = rig.num_cameras
+    names = list(names)
+    fg = masks.flatten(1).float().mean(1).tolist()
+    measured = [c for c in range(C) if 0 < fg[c] <= 0.5]
+    hulls: dict[tuple[int, ...], Tensor] = {}
+    agree: dict[tuple[tuple[int, ...], int], tuple[float, float]] = {}
+
+    def points(views):
+        key = tuple(sorted(views))
+        if key not in hulls:
+            hulls[key] = _hull_points(rig, masks, key, HULL_VOXEL_M)
+        return hulls[key]
+
+    def score(views, c):
+        key = (tuple(sorted(views)), c)
+        if key not in agree:
+            agree[key] = _mask_agreement(rig, masks, points(views), c)
+        return agree[key]
+
+    def set_error(views):
+        return max(MIN_MASK_AGREEMENT / max(score([o for o in views if o != c], c)[1], 1e-9)
+                   for c in views)
+
+    ref: list[int] = []
+    if len(measured) >= 3:
+        for n in range(len(measured), 2, -1):
+            good = [(set_error(S), S) for S in itertools.combinations(measured, n)]
+            good = [(e, S) for e, S in good if e <= 1.0]
+            if good:
+                ref = list(min(good)[1])
+                break
+            if len(measured) > EXHAUSTIVE_VIEWS:
+                break
+    report: dict[str, Any] = {
+        "method": "masks", "heldout_camera": heldout,
+        "limits": {"agreement": MIN_MASK_AGREEMENT, "voxel_m": HULL_VOXEL_M,
+                   "relative_to": "the visual hull of the other views' masks, projected"},
+        "consistent_views": [names[c] for c in ref], "stature_m": None, "views": {}}
+    if ref:
+        pts = points(ref)
+        if pts.shape[0]:
+            report["stature_m"] = round(float(pts[:, 2].max() - pts[:, 2].min()), 4)
+    for c, name in enumerate(names):
+        e: dict[str, Any] = {"status": None, "agreement": None, "precision": None,
+                             "coverage": None, "foreground": round(fg[c], 4), "against": []}
+        if fg[c] == 0:
+            e["status"] = "no detections"
+        elif fg[c] > 0.5:
+            e["status"] = "mostly foreground"
+        elif len(measured) < 3:
+            e["status"] = "too few views"
+        else:
+            against = [o for o in (ref or measured) if o != c]
+            prec, cov = score(against, c)
+            e.update(agreement=round(cov, 4), precision=round(prec, 4),
+                     coverage=round(cov, 4), against=[names[o] for o in against],
+                     status="consistent" if c in ref else "inconsistent")
+            if c not in ref:
+                e["cause"] = ("its calibration (of another camera, or moved) or its mask (of "
+                              "another view or frame)" if ref else
+                              "no three views agree: calibrations of other cameras or another "
+                              "rig, or masks of other views")
+        report["views"][name] = e
+    return report
+
+
 def _unit_hint(stature: float, unit, calibration) -> str:
     """What ``data.unit`` makes a ``stature``-metre subject a person's size."""
     from pathlib import Path
@@ -489,7 +616,30 @@ def check_views(report: dict[str, Any], mode: str = "refuse", unit=None,
                         f"{s:.4g} m{far}, a person {lo}-{hi} m: "
                         + _unit_hint(s, unit, calibration))
     bad = [n for n, e in views.items() if e["status"] == "inconsistent"]
-    if bad:
+    if bad and report.get("method") == "masks":
+        held = report.get("heldout_camera")
+        figures = ", ".join(f"{n}{' (held out)' if n == held else ''} "
+                            f"{100 * views[n]['agreement']:.0f} %" for n in bad)
+        limit = f"{100 * MIN_MASK_AGREEMENT:.0f} %"
+        if ref:
+            worst = min(views[n]["agreement"] for n in ref)
+            head = (f"data.cameras: the masks of {', '.join(bad)} disagree with the other "
+                    f"views': {figures} agreement with the visual hull of {', '.join(ref)} "
+                    f"(which agree at {100 * worst:.0f} % or more; the limit is {limit})")
+        else:
+            head = (f"data.cameras: no three views' masks agree ({figures} agreement with the "
+                    f"hull of the others; the limit is {limit})")
+        empty = [n for n in views if views[n]["status"] == "no detections"]
+        fg = ", ".join(f"{n} {100 * e['foreground']:.1f} %" for n, e in views.items())
+        head += (f"; the mask{'s' if len(empty) > 1 else ''} of {', '.join(empty)} "
+                 f"{'are' if len(empty) > 1 else 'is'} empty" if empty else "") + \
+            f" (foreground read: {fg})"
+        keep = [n for n in views if n not in bad and n not in empty]
+        cause = views[bad[0]].get("cause")
+        problems.append(head + (f"; {cause}" if cause else "") + (
+            f"; fix them, track without them (data.cameras={_list(keep)})" if len(keep) >= 3
+            else "; fix them"))
+    elif bad:
         held = report.get("heldout_camera")
         figures = ", ".join(
             f"{n}{' (held out)' if n == held else ''} "

@@ -41,6 +41,7 @@ from torchmocap.data.recordings.checks import (
     check_detections,
     check_mode,
     check_views,
+    mask_consistency,
     view_consistency,
 )
 from torchmocap.data.recordings.files import (
@@ -510,6 +511,10 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
         meta.update(keypoint_start(tracked.joints2d, tracked.joint_names, fmt, tracked.rig,
                                    fit_settings, scale))
     elif tracked.silhouettes is not None and tracked.num_cameras >= 2:
+        # --- checks: the views' masks agree (torchmocap.data.recordings.checks) ---
+        meta.view_consistency = mask_consistency(seq.silhouettes[0], seq.rig, names,
+                                                 meta.heldout_camera)
+        check_views(meta.view_consistency, checks)
         meta.update(hull_start(tracked.rig, tracked.silhouettes[0]))
     return seq
 
