@@ -161,6 +161,7 @@ def main() -> None:
             "| frames | consistent | stature m | per view: residual px (relative) | worst set "
             "of 3-4 views | worst pair |", "|---|---|---|---|---|---|"]
     worst_sets, worst_pairs = 0.0, 0.0
+    plot: dict[str, list[tuple[str, float]]] = {"intact": [], "corrupted": []}
     full, _ = _load(src, subject={"frames": 1})
     for start in range(0, full.num_frames, 10):
         seq, said = _load(src, start=start, stop=start + 10)
@@ -169,6 +170,7 @@ def main() -> None:
         big = max(e for k, e in sets.items() if len(k) >= 3)
         pair = max(e for k, e in sets.items() if len(k) == 2)
         worst_sets, worst_pairs = max(worst_sets, big), max(worst_pairs, pair)
+        plot["intact"].append((f"frames {start}-{start + 9}", big))
         views = ", ".join(f"{n} {e['residual_px']:.0f} ({e['relative']:.3f})"
                           for n, e in r["views"].items())
         rows.append(f"| {start}-{start + 9} | {len(r['consistent_views'])}/4 | "
@@ -179,7 +181,8 @@ def main() -> None:
              f"{checks.MAX_PAIR_RESIDUAL}).", ""]
     rows += ["## Corrupted copies of pose2sim_balancing (frames 0-9)", "",
              "| case | consistent views | stature m | flagged: residual px (relative) | best "
-             "set holding a flagged view | warnings / refusal |", "|---|---|---|---|---|---|"]
+             "set of 3-4 views holding a flagged view (best pair) | warnings / refusal |",
+             "|---|---|---|---|---|---|"]
     with tempfile.TemporaryDirectory() as tmp:
         for name, fn in CASES.items():
             root = Path(tmp) / re.sub(r"\W+", "_", name)
@@ -193,12 +196,17 @@ def main() -> None:
                                 f"({r['views'][n]['relative']:.3f})" for n in bad) or "-"
             sets = keypoint_sets(seq)
             holding = [e for k, e in sets.items() if len(k) >= 3 and set(k) & set(bad)]
+            pairs = [e for k, e in sets.items() if len(k) == 2 and set(k) & set(bad)]
             best = f"{min(holding):.3f}" if holding else "-"
+            if holding:
+                plot["corrupted"].append((name, min(holding)))
+            best += f" (pairs {min(pairs):.3f})" if pairs else ""
             try:
                 checks.check_views(r, "refuse")
                 refused = ""
             except checks.RecordingCheckError as e:
                 refused = "refused: " + str(e)[:160] + " ..."
+            said = [re.sub(r" \(/[^)]*\)", "", w) for w in said]  # without the temporary paths
             text = "; ".join(w[:120] for w in said if not w.startswith(("data.cameras",
                                                                           "data.unit")))
             rows.append(f"| {name} | {', '.join(r['consistent_views'])} | "
@@ -206,7 +214,8 @@ def main() -> None:
                         f"{'; '.join(x for x in (text, refused) if x) or 'silent'} |")
         rows += ["", "## The bodytrack frame (masks only)", "",
                  "| case | consistent views | per view: agreement (fraction of its mask covered "
-                 "by the others' hull) | smallest agreement in any set of 3-4 views | refusal |",
+                 "by the others' hull) | the best set of 3-4 views: its smallest agreement | "
+                 "refusal |",
                  "|---|---|---|---|---|"]
         bsrc = data / "multiview" / "bodytrack_sequenceB_1"
         for name, fn in BODYTRACK.items():
@@ -230,12 +239,35 @@ def main() -> None:
             except checks.RecordingCheckError as e:
                 refused = "refused: " + str(e)[:140] + " ..."
             rows.append(f"| {name} | {', '.join(r['consistent_views']) or '-'} | {views} | "
-                        f"{min(mins):.2f} (largest of the sets' smallest: {max(mins):.2f}) | "
-                        f"{refused} |")
+                        f"{max(mins):.2f} | {refused} |")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "margins.md").write_text("\n".join(rows) + "\n")
+    _plot(plot, out / "margins.png")
     print("\n".join(rows))
+
+
+def _plot(plot, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    items = [(n, v, "tab:green") for n, v in plot["intact"]] + \
+        [(n, v, "tab:red") for n, v in plot["corrupted"]]
+    fig, ax = plt.subplots(figsize=(8, 0.32 * len(items) + 1.2))
+    ax.barh(range(len(items)), [v for _, v, _ in items], color=[c for *_, c in items])
+    ax.set_yticks(range(len(items)), [n for n, *_ in items], fontsize=8)
+    ax.invert_yaxis()
+    ax.set_xscale("log")
+    ax.axvline(checks.MAX_VIEW_RESIDUAL, color="k", ls="--", lw=1)
+    ax.text(checks.MAX_VIEW_RESIDUAL, len(items) - 0.4, f" limit {checks.MAX_VIEW_RESIDUAL}",
+            fontsize=8)
+    ax.set_xlabel("largest residual / the subject's size in the view\n(green: the intact "
+                  "recording's worst set of 3-4 views; red: the best set\nholding a corrupted "
+                  "view)", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
 
 
 if __name__ == "__main__":
