@@ -30,7 +30,7 @@ Example:
     >>> try:
     ...     check_camera_choice(["cam01", "cam02"], heldout="cam01", min_views=2)
     ... except ValueError as e:
-    ...     print(str(e)[:60])
+    ...     print(str(e)[:59])
     data.cameras: the tracker sees 1 view (cam02; cam01 is held
 """
 
