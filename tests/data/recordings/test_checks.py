@@ -89,6 +89,12 @@ class TestIntact:
         check_camera_choice(["cam01"], None, 0)  # a library load of one view is fine
 
 
+    def test_feature_a_subject_too_small_in_the_images(self, broken):
+        _, said = _load(broken("intact"), stop=2, scale=0.02)
+        assert len(said) == 1 and said[0].startswith("data.scale=0.02: the subject is at most "
+                                                     "18 px tall in the scaled images")
+
+
 class TestUnits:
     def test_exception_millimetres_in_a_metres_file(self, broken):
         root = broken("millimetres")
