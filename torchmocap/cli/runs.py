@@ -412,23 +412,47 @@ def _config_groups() -> set[str]:
     return names
 
 
+def _group_options(config, group: str) -> set[str] | None:
+    """The options of config group ``group`` in every config source of the run
+    (``hydra.runtime.config_sources``: the packaged configs, the search path's folders); None
+    when a source cannot be listed."""
+    from importlib import resources
+
+    found: set[str] = set()
+    for src in config.hydra.runtime.config_sources:
+        schema, path = str(src.schema), str(src.path)
+        try:
+            if schema == "file":
+                folder = Path(path) / group
+            elif schema == "pkg":
+                folder = resources.files(path.replace("/", ".")) / group
+            else:
+                continue
+            if folder.is_dir():
+                found |= {p.name.rsplit(".", 1)[0] for p in folder.iterdir()
+                          if p.name.endswith((".yaml", ".yml"))}
+        except (ModuleNotFoundError, OSError, TypeError, ValueError):
+            return None
+    return found
+
+
 def check_sweep_choices(config) -> None:
     """Refuse a multirun sweeping a config group over an option that does not exist
     (``tracker=p,nope``) before any job runs, naming it and the group's options."""
-    from hydra.core.global_hydra import GlobalHydra
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    if not GlobalHydra.instance().is_initialized():
-        return
-    loader = GlobalHydra.instance().config_loader()
-    for o in OverridesParser.create().parse_overrides(
-            [str(x) for x in config.hydra.overrides.task]):
+    try:
+        overrides = OverridesParser.create().parse_overrides(
+            [str(x) for x in config.hydra.overrides.task])
+    except Exception:
+        return  # Hydra reports it
+    for o in overrides:
         group = o.key_or_group.split("@")[0]
         if not o.is_sweep_override() or o.is_hydra_override():
             continue
-        options = loader.get_group_options(group)
+        options = _group_options(config, group)
         if not options:
-            continue  # not a config group
+            continue  # not a config group (or not listable: Hydra checks it)
         try:
             values = [str(v) for v in o.sweep_string_iterator()]
         except Exception:

@@ -156,8 +156,8 @@ def check_detections(people: list[list[Tensor]], num_keypoints: int, names: Sequ
         :data:`OUTSIDE_MARGIN` outside the image zeroed (missed).
 
     Warns:
-        a view without any detection, keypoints dropped outside the image, every keypoint of a
-        view in the top-left quarter of the image, confidences above 1.
+        UserWarning: a view without any detection, keypoints dropped outside the image, every
+            keypoint of a view in the top-left quarter of the image, confidences above 1.
 
     Raises:
         RecordingCheckError: nobody detected in any view of any loaded frame.
