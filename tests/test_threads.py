@@ -105,6 +105,21 @@ class TestMeasurement:
         assert apply_thread_policy("auto").threads == 2
         assert apply_thread_policy(1).threads == 1
 
+    def test_oversubscription_is_warned_about(self, monkeypatch, recwarn):
+        """``threads=1000`` on 2 cores ran at 34 s per frame without a word."""
+        monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+        monkeypatch.setattr(threads, "available_cores", lambda: [0, 1])
+        monkeypatch.setattr(torch, "set_num_threads", lambda n: None)  # not really 1000
+        with pytest.warns(UserWarning, match=r"^threads=1000: more threads than the 2 cores "
+                                             r".*use at most 2"):
+            assert apply_thread_policy(1000).threads == 1000
+        monkeypatch.setenv("OMP_NUM_THREADS", "8")
+        with pytest.warns(UserWarning, match=r"^OMP_NUM_THREADS=8: more threads"):
+            apply_thread_policy("auto")
+        monkeypatch.delenv("OMP_NUM_THREADS")
+        apply_thread_policy(2)
+        assert not [w for w in recwarn if "more threads" in str(w.message)]
+
 
 class TestGovernor:
     def test_feature(self, monkeypatch):

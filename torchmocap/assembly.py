@@ -287,7 +287,7 @@ def sequence_cache_dir(cfg) -> Path | None:
     return d
 
 
-def load_sequence(cfg, min_frames: int = 2):
+def load_sequence(cfg, min_frames: int = 2, min_views: int | None = None):
     """Build the ``data`` node (a sequence source with ``_target_``; its ``seed`` defaults to
     the run's, and ``evaluation.heldout_camera`` is passed to a source that holds one out),
     noting every file it reads: ``meta.inputs`` holds their digests
@@ -297,7 +297,9 @@ def load_sequence(cfg, min_frames: int = 2):
     ``<dir>/<fingerprint of the data node, the code and the files it names>`` and read back by
     later runs with the same data settings (e.g. every tracker and seed of a sweep) while the
     input files it was built from are unchanged; otherwise it is rebuilt and replaced. A cache
-    entry that cannot be written is reported with a warning (the run goes on uncached)."""
+    entry that cannot be written is reported with a warning (the run goes on uncached).
+    ``min_frames`` and ``min_views`` (the views a tracker needs, None: any) are passed to a
+    source that accepts them."""
     import warnings
 
     from hydra.utils import get_object
@@ -311,6 +313,8 @@ def load_sequence(cfg, min_frames: int = 2):
         extra["seed"] = int(cfg.seed)
     if _accepts(fn, "min_frames")[0]:
         extra["min_frames"] = min_frames
+    if min_views is not None and _accepts(fn, "min_views")[0]:
+        extra["min_views"] = min_views  # e.g. a recording's tracked views (checked first)
     held = (cfg.get("evaluation") or {}).get("heldout_camera")
     if held is not None:
         if not _accepts(fn, "heldout_camera")[0]:

@@ -238,6 +238,13 @@ def apply_thread_policy(requested: Any = "auto", launcher: Mapping | None = None
     explicit = parse_threads(requested) is not None or bool(omp and omp.strip())
     busy = 0.0 if explicit else busy_cores(interval, cpus)
     choice = choose_threads(len(cpus), busy, jobs, per_job, requested, omp)
+    if choice.threads > len(cpus):  # oversubscribed: every thread waits for a core
+        import warnings
+
+        where = "threads" if parse_threads(requested) is not None else "OMP_NUM_THREADS"
+        warnings.warn(f"{where}={choice.threads}: more threads than the {len(cpus)} cores this "
+                      f"process may use; threads then wait for each other (many times slower): "
+                      f"use at most {len(cpus)} (threads=auto chooses)", stacklevel=2)
     torch.set_num_threads(choice.threads)
     return choice
 

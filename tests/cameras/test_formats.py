@@ -134,7 +134,11 @@ class TestTomlCalibration:
         ({"fisheye": "true"}, r"\[a\]: fisheye = True: the fisheye lens model is not supported"),
         ({"matrix": None}, r"\[a\]: missing camera field\(s\) \['matrix'\]"),
         ({"size": "[ 640.5, 480.0]"}, r"\[a\]: image_size must be positive whole numbers"),
-        ({"rotation": "[ 0.0, 0.0]"}, r"\[a\]: rotation must have 9 values"),
+        ({"rotation": "[ 0.0, 0.0]"}, r"\[a\]: rotation must have 3 values \(a Rodrigues "
+                                       r"vector\) or 9 \(a 3x3 matrix\), got 2"),
+        # a non-rotation matrix: named by the table, not as 'camera(s) [0]'
+        ({"rotation": "[ [1.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 1.0]]"},
+         r"^\S*bad\.toml \[a\]: R is not a rotation matrix"),
         ({"translation": "[ 0.0, nan, 3.0]"}, r"\[a\]: t contains non-finite"),
     ])
     def test_exception(self, tmp_path, over, match):
@@ -142,6 +146,13 @@ class TestTomlCalibration:
         p.write_text(_toml_camera("a", **over))
         with pytest.raises(CameraError, match=match):
             read_toml_calibration(p)
+
+    def test_exception_rotation_named_by_camera(self):
+        eye, bad = torch.eye(3, dtype=F64), torch.diag(torch.tensor([1.0, 2.0, 1.0], dtype=F64))
+        K = torch.tensor([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]], dtype=F64)
+        with pytest.raises(CameraError, match=r"^R of camera\(s\) \['b'\] is not a rotation"):
+            CameraRig(K.expand(2, 3, 3), torch.stack([eye, bad]), torch.zeros(2, 3, dtype=F64),
+                      [(640, 480)] * 2, names=["a", "b"])
 
     def test_exception_file(self, tmp_path):
         p = tmp_path / "bad.toml"

@@ -207,6 +207,11 @@ class TestConsole:
         assert main([str(tmp_path / "nope")]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("torchmocap-aggregate: error: multirun_dir:")
+        (tmp_path / "a_file").write_text("x")  # was '[Errno 17] File exists'
+        assert main([str(root), "--out", str(tmp_path / "a_file"), "--no-plots"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err == [f"torchmocap-aggregate: error: --out: cannot write the tables into "
+                       f"{tmp_path / 'a_file'} (a file, not a directory)"]
 
     def test_console_script(self, sweep, tmp_path):
         root, _ = sweep

@@ -86,6 +86,12 @@ def test_resume_from_the_documented_checkpoint_and_refuse_other_data(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     again = json.loads((tmp_path / "b" / "metrics.json").read_text())
     assert again["orientation_error_deg"] == full["orientation_error_deg"]
+    # output settings (overlays) change what is written, not the track: resumed too
+    r = _run([*args, "overlays=1", f"hydra.run.dir={tmp_path / 'd'}"], tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert json.loads((tmp_path / "d" / "metrics.json").read_text())[
+        "orientation_error_deg"] == full["orientation_error_deg"]
+    assert list((tmp_path / "d").glob("overlay_*.png"))
     for other in (["data.clip.start=0.4"], ["tracker.num_particles=21"]):
         r = _run([*args, *other, f"hydra.run.dir={tmp_path / 'c'}"], tmp_path)
         assert r.returncode == 2 and "checkpoint" in r.stderr and "fingerprint" in r.stderr

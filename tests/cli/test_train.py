@@ -64,10 +64,14 @@ def test_settings_errors_before_data(tmp_path):
     (["data.train_clips=[]"], r"^data\.train_clips: expected a list of at least one clip"),
     (["epochs=0"], r"^epochs: expected a positive int, got 0"),
     (["seed=18446744073709551616"], r"^seed: expected an integer in"),
+    (["term=silhouette"], r"^term: torchmocap\.likelihoods\.SilhouetteLikelihood is not a "
+                          r"learned likelihood term .* trains term=learned_features \| "
+                          r"learned_render"),
 ])
 def test_settings_errors_name_the_setting(tmp_path, overrides, message):
     """``data.train_clips=[]`` failed with 'list index out of range', ``epochs=0`` on a missing
-    checkpoints/last.pt after the synthesis."""
+    checkpoints/last.pt after the synthesis, a term that is not learned with the constructor's
+    'unexpected keyword argument weights' after it."""
     with pytest.raises(ValueError, match=message):
         run(_cfg(tmp_path, overrides), tmp_path / "x")
     assert not (tmp_path / "cache").exists()

@@ -229,6 +229,29 @@ class TestHeldOutViewScores:
         assert bare.scores is None and "median_px" not in bare.summary()
         assert bare.summary()["silhouette_iou"] == pytest.approx(1.0)
 
+    def test_feature_nothing_to_compare(self, scene):
+        """A view without detections has no scores (null, JSON-safe: it was NaN and failed
+        metrics.json), and frames whose mask is empty no IoU (it was scored 0.0)."""
+        import dataclasses
+
+        runtime, seq, theta = scene
+        det = seq.joints2d.clone()
+        det[:, 1] = 0.0
+        masks = seq.silhouettes.clone()
+        masks[:2, 1] = False
+        seq2 = dataclasses.replace(seq, joints2d=det, silhouettes=masks)
+        out = heldout_view_scores(seq2, runtime, theta, 1).summary()
+        assert out["median_px"] is None and out["pck_10"] is None and out["num_compared"] == 0
+        assert out["silhouette_iou"] == pytest.approx(1.0)  # the frames with a mask
+        json.dumps(out, allow_nan=False)
+        masks[:, 1] = False
+        seq3 = dataclasses.replace(seq, silhouettes=masks)
+        assert heldout_view_scores(seq3, runtime, theta, 1).summary()["silhouette_iou"] is None
+        from torchmocap.evaluation import silhouette_agreement
+
+        agree = silhouette_agreement(seq3, runtime.body, runtime.rig, theta)
+        assert agree["per_view"][1] is None and agree["mean"] == pytest.approx(1.0)
+
     def test_exception(self, scene):
         import dataclasses
 

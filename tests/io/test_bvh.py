@@ -151,6 +151,14 @@ class TestRead:
         p.write_text(TOY.replace("1 2 3 0", "1 nan 3 0"))
         with pytest.raises(MotionFormatError, match=r":24: frame holds NaN"):
             read_bvh(p, unit=1.0)
+        # a corrupted angle (it was skipped as 'a reference pose' when tracking)
+        p.write_text(TOY.replace("0 0 0 90 0 0 0 10 90 0", "0 0 0 90 0 0 0 10 1e20 0"))
+        with pytest.raises(MotionFormatError, match=r":25: frame 1: joint Slider channel "
+                                                    r"Zrotation = 1e\+20 degrees is not an "
+                                                    r"angle"):
+            read_bvh(p, unit=1.0)
+        p.write_text(TOY.replace("0 0 0 90 0 0 0 10 90 0", "0 0 0 90 0 0 0 10 720 0"))
+        assert read_bvh(p, unit=1.0).num_frames == 2  # an unwrapped 720 degrees is an angle
         p.write_text(TOY.replace("Frames: 2", "Frames: 3"))
         with pytest.raises(MotionFormatError, match="truncated"):
             read_bvh(p, unit=1.0)

@@ -103,17 +103,24 @@ class TestImageFolderFrames:
         return d
 
     def test_feature_natural_order_and_grey_to_rgb(self, tmp_path):
-        d = self._folder(tmp_path, ["img2.png", "img10.png", "img1.bmp", "IMG3.JPG"])
+        d = self._folder(tmp_path, ["img9.png", "img10.png", "img8.bmp", "IMG11.JPG"])
         (d / "notes.txt").write_text("not an image")
         src = open_frames(d)
         assert isinstance(src, ImageFolderFrames) and src.fps is None
-        assert [p.name for p in src.files] == ["img1.bmp", "img2.png", "IMG3.JPG", "img10.png"]
+        assert [p.name for p in src.files] == ["img8.bmp", "img9.png", "img10.png", "IMG11.JPG"]
+        assert src.first_number == 8 and src.missing() == []
         frames = list(src.frames())
         assert frames[0].shape == (6, 8, 3)
-        # written in the order img2 (10), img10 (20), img1 (30), IMG3 (40, JPEG: near)
+        # written in the order img9 (0), img10 (10), img8 (20), IMG11 (30, JPEG: near)
         assert [int(f[0, 0, 0]) for f in frames[:2]] == [20, 0]
-        assert abs(int(frames[2][0, 0, 0]) - 30) <= 2 and int(frames[3][0, 0, 1]) == 10
+        assert int(frames[2][0, 0, 1]) == 10 and abs(int(frames[3][0, 0, 0]) - 30) <= 2
         assert (frames[1][..., 0] == frames[1][..., 2]).all()
+        # names without numbers: natural order
+        plain = tmp_path / "plain"
+        plain.mkdir()
+        for n in ("b.png", "a.png"):
+            Image.new("L", (8, 6)).save(plain / n)
+        assert [p.name for p in ImageFolderFrames(plain).files] == ["a.png", "b.png"]
 
     def test_exception(self, tmp_path):
         d = self._folder(tmp_path, ["a0.png", "a1.png"])

@@ -146,7 +146,7 @@ class TestCheckFormat:
         for x in hidden:
             x[:, [2, 9], 2] = 0  # neither BODY_25 triple (1, 2, 5), (8, 9, 12) complete
         with pytest.raises(KeypointFormatError, match=r"no person shows both hips or both "
-                                                      r"shoulders .* set keypoints\.format"):
+                                                      r"shoulders .* set data\.keypoints\.format"):
             check_keypoint_format("auto", hidden)
         with pytest.raises(KeypointFormatError, match=r"different keypoint counts"):
             check_keypoint_format("auto", [raw_people[0], raw_people[1][:, :17]])

@@ -103,3 +103,27 @@ def test_view_scale_and_bad_reference_width(two_resolutions):
             SilhouetteLikelihood(body, rig, reference_width=bad)
     with pytest.raises(ValueError, match="blur"):
         prepare_silhouettes(torch.ones(4, 8, 8, dtype=torch.bool), 4, blur=[1.0, 2.0])
+
+
+def test_soft_silhouettes_of_views_of_different_sizes():
+    """One rig with a 320 x 240 and a 160 x 120 camera (the same field of view): the grid is
+    the largest view's; the smaller view fills its top-left corner, as rendered alone, and is
+    0 outside its own image (a sequence's padding)."""
+    from torchmocap.cameras import CameraRig
+    from torchmocap.likelihoods import soft_capsule_silhouettes
+
+    sk = human31()
+    body = CapsuleBody(sk).double()
+    big = make_ring_rig(2, image_size=(320, 240)).double()
+    small = make_ring_rig(2, image_size=(160, 120)).double()
+    rig = CameraRig(torch.stack([big.K[0], small.K[1]]), big.R, big.t,
+                    [(320, 240), (160, 120)], big.dist, ["a", "b"])
+    ends = body.endpoints(sk(sk.zero_pose((1,), dtype=torch.float64)))
+    both = soft_capsule_silhouettes(ends, body.radii, rig, stride=2)
+    assert both.shape == (1, 2, 120, 160)
+    alone = soft_capsule_silhouettes(ends, body.radii, small.subset([1]), stride=2)[0, 0]
+    torch.testing.assert_close(both[0, 1, :60, :80], alone)
+    assert float(alone.sum()) > 50 and float(both[0, 1, 60:].abs().sum()) == 0.0
+    assert float(both[0, 1, :, 80:].abs().sum()) == 0.0
+    first = soft_capsule_silhouettes(ends, body.radii, big.subset([0]), stride=2)[0, 0]
+    torch.testing.assert_close(both[0, 0], first)

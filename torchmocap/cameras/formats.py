@@ -90,6 +90,9 @@ def _rotation(value: Any, where: str, field: str) -> torch.Tensor:
         raise CameraError(f"{where}: {field} is not numeric ({e})") from e
     if n == 3:
         return _rodrigues(_matrix(value, (3,), where, field))
+    if n != 9:
+        raise CameraError(f"{where}: {field} must have 3 values (a Rodrigues vector) or 9 (a "
+                          f"3x3 matrix), got {n}")
     return _matrix(value, (3, 3), where, field)
 
 

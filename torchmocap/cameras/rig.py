@@ -135,12 +135,13 @@ class CameraRig(nn.Module):
         _check_focal(K)
         tol = 1e-4 if K.dtype == torch.float32 else 1e-6
         ok = _is_rotation(R, tol)
-        if not bool(ok.all()):
-            bad = [i for i in range(C) if not bool(ok[i])]
-            raise CameraError(f"R of camera(s) {bad} is not a rotation matrix "
-                              "(R Rᵀ ≠ I or det ≠ 1)")
         if names is not None and len(names) != C:
             raise CameraError(f"names must have {C} entries, got {len(names)}")
+        if not bool(ok.all()):
+            bad = [i for i in range(C) if not bool(ok[i])]
+            which = "R" if C == 1 else (f"R of camera(s) {[names[i] for i in bad]}"
+                                        if names is not None else f"R of camera(s) {bad}")
+            raise CameraError(f"{which} is not a rotation matrix (R Rᵀ ≠ I or det ≠ 1)")
         self.names = list(names) if names is not None else [f"cam{i}" for i in range(C)]
         self.register_buffer("K", K)
         self.register_buffer("dist", dist)

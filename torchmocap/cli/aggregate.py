@@ -380,8 +380,16 @@ def aggregate_sweep(multirun_dir: str | Path, out: str | Path | None = None,
         raise SweepAggregateError(f"over: expected a list of setting names, got {over!r}")
     jobs, failed = find_jobs(multirun_dir)
     table = aggregate(jobs, metrics, over, failed)
+    given = out is not None
     out = Path(multirun_dir if out is None else out).expanduser()
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        where = "--out" if given else "multirun_dir"
+        what = "a file, not a directory" if out.exists() and not out.is_dir() else \
+            (e.strerror or str(e))
+        raise SweepAggregateError(f"{where}: cannot write the tables into {out} ({what})"
+                                  ) from None
     md = table_markdown(table, title=f"Sweep {Path(multirun_dir).name}")
     written: dict[str, Any] = {"table": table}
     for name, text in (("markdown", md), ("csv", table_csv(table))):

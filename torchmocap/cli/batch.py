@@ -156,7 +156,7 @@ def run_batch(cfg: DictConfig, out: Path) -> dict:
             built: dict[str, tuple] = {}  # one sequence, runtime and tracker per sequence key
             for (s, cs, fp, so), key in zip(todo, keys):
                 if key not in built:
-                    seq = load_sequence(cs, min_frames=2)
+                    seq = load_sequence(cs, min_frames=2, min_views=2)
                     tracked, _ = split_heldout(seq)
                     runtime = Runtime.from_sequence(tracked)
                     tracker = build_tracker(cs.tracker, runtime, seed=s)

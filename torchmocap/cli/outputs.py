@@ -152,9 +152,12 @@ def _recording_rows(m: dict) -> list[tuple[str, str]]:
     """Summary rows of a track without ground truth: the scores in the held-out view (and of
     the first pose held), in the tracked views, bone-length CV and jitter."""
     def px(d: dict) -> str:
-        iou = f", IoU {d['silhouette_iou']:.3f}" if "silhouette_iou" in d else ""
+        iou = "" if "silhouette_iou" not in d else ", IoU -" if d["silhouette_iou"] is None \
+            else f", IoU {d['silhouette_iou']:.3f}"
         if "median_px" not in d:
             return iou[2:] or "-"
+        if d["median_px"] is None:
+            return "no detections to compare" + iou
         return (f"{d['median_px']:.1f} px median, {d['mean_px']:.1f} mean, PCK@5% "
                 f"{d['pck_05']:.3f}, @10% {d['pck_10']:.3f}{iou}")
 
@@ -166,8 +169,8 @@ def _recording_rows(m: dict) -> list[tuple[str, str]]:
         rows += [(f"held-out {h['camera']}", px(h)),
                  ("  holding the first pose", px(h["hold_first_pose"]))]
     for cam, d in (m.get("tracked_views") or {}).items():
-        rows.append((f"tracked {cam}", f"{d['median_px']:.1f} px median, PCK@10% "
-                                       f"{d['pck_10']:.3f}"))
+        rows.append((f"tracked {cam}", "no detections to compare" if d["median_px"] is None
+                     else f"{d['median_px']:.1f} px median, PCK@10% {d['pck_10']:.3f}"))
     c = m.get("consistency")
     if c:
         cv = c["bone_length_cv_percent"]

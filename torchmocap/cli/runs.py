@@ -42,6 +42,7 @@ __all__ = [
     "SweepStatus",
     "acquire_lock",
     "check_added_settings",
+    "check_sweep_choices",
     "release_lock",
     "completed_run",
     "config_fingerprint",
@@ -51,6 +52,7 @@ __all__ = [
     "read_json",
     "reported_warnings",
     "run_fingerprint",
+    "sweep_overrides",
     "write_failure",
 ]
 
@@ -201,15 +203,21 @@ class SweepStatus(Callback):
         self._start = time.time()
 
     @staticmethod
-    def _guard(directory: str) -> None:
+    def _guard(directory: str, setting: str) -> None:
         try:
             acquire_lock(Path(directory))
         except RunLockError as e:
             print(f"torchmocap: error: {e}", file=sys.stderr)
             sys.exit(2)
+        except OSError as e:  # before Hydra's log file fails on it with a long traceback
+            why = e.strerror or type(e).__name__
+            where = f": {e.filename}" if e.filename and str(e.filename) != directory else ""
+            print(f"torchmocap: error: {setting}: cannot write the directory {directory} "
+                  f"({why}{where}); choose a writable one", file=sys.stderr)
+            sys.exit(2)
 
     def on_run_start(self, config, **kwargs) -> None:
-        self._guard(str(config.hydra.run.dir))
+        self._guard(str(config.hydra.run.dir), "hydra.run.dir")
 
     def on_run_end(self, config, **kwargs) -> None:
         release_lock(Path(str(config.hydra.run.dir)))
@@ -217,7 +225,8 @@ class SweepStatus(Callback):
     def on_multirun_start(self, config, **kwargs) -> None:
         self._start = time.time() - 1.0
         _failures.clear()
-        self._guard(str(config.hydra.sweep.dir))
+        check_sweep_choices(config)
+        self._guard(str(config.hydra.sweep.dir), "hydra.sweep.dir")
 
     def on_multirun_end(self, config, **kwargs) -> None:
         release_lock(Path(str(config.hydra.sweep.dir)))
@@ -333,15 +342,140 @@ def hydra_task(command: str, failed: Any = None, fingerprint=None):
     return decorate
 
 
+#: Hydra flags followed by a value (not an override)
+_VALUE_FLAGS = ("-cn", "--config-name", "-cp", "--config-path", "-cd", "--config-dir", "-p",
+                "--package", "--info", "-i", "--experimental-rerun", "-sc",
+                "--shell-completion")
+
+
+def sweep_overrides(args: list[str]) -> list[str]:
+    """A multirun's command line with its settings deferred to the jobs.
+
+    Hydra composes a multirun's base config (the one its sweep directory and launcher come
+    from) without the sweeps: with the default of a swept group. A setting valid for every
+    swept preset but not for the default (``-m tracker=p,g tracker.inference.layers=3``: the
+    default LS has no annealing layers) would then fail there, before any job. Written as a
+    one-value sweep (``tracker.inference.layers=choice(3)``) it is left out of the base config
+    and set in each job, where a key a preset lacks is still an error of that job. Only
+    settings of the form ``key=value`` are deferred, and only when a config group is swept;
+    other arguments are returned unchanged.
+    """
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.core.override_parser.types import OverrideType
+
+    if not any(a in ("-m", "--multirun") for a in args):
+        return list(args)
+    parser = OverridesParser.create()
+    parsed: list = []
+    skip = False
+    for a in args:
+        if skip or a.startswith("-"):
+            skip = not skip and a in _VALUE_FLAGS
+            parsed.append(None)
+            continue
+        try:
+            parsed.append(parser.parse_override(a))
+        except Exception:
+            parsed.append(None)
+    groups = _config_groups()
+    swept = [o for o in parsed if o is not None and o.is_sweep_override()
+             and o.key_or_group.split("@")[0] in groups]
+    if not swept:
+        return list(args)
+    out = []
+    for a, o in zip(args, parsed):
+        if (o is None or o.is_sweep_override() or o.type != OverrideType.CHANGE
+                or o.is_hydra_override() or o.key_or_group.split("@")[0] in groups
+                or o.package is not None or "=" not in a):
+            out.append(a)
+            continue
+        value = a.split("=", 1)[1]
+        deferred = f"{o.key_or_group}=choice({value})"
+        try:
+            ok = parser.parse_override(deferred).is_sweep_override() and value != ""
+        except Exception:
+            ok = False
+        out.append(deferred if ok else a)
+    return out
+
+
+def _config_groups() -> set[str]:
+    """Names of the config groups of the packaged configs and of the repository's ``conf/``
+    (when run from its root)."""
+    from importlib import resources
+
+    names = {p.name for p in (resources.files("torchmocap") / "conf").iterdir()
+             if p.is_dir() and not p.name.startswith("_")}
+    local = Path("conf")
+    if local.is_dir():
+        names |= {p.name for p in local.iterdir() if p.is_dir()}
+    return names
+
+
+def _group_options(config, group: str) -> set[str] | None:
+    """The options of config group ``group`` in every config source of the run
+    (``hydra.runtime.config_sources``: the packaged configs, the search path's folders); None
+    when a source cannot be listed."""
+    from importlib import resources
+
+    found: set[str] = set()
+    for src in config.hydra.runtime.config_sources:
+        schema, path = str(src.schema), str(src.path)
+        try:
+            if schema == "file":
+                folder = Path(path) / group
+            elif schema == "pkg":
+                folder = resources.files(path.replace("/", ".")) / group
+            else:
+                continue
+            if folder.is_dir():
+                found |= {p.name.rsplit(".", 1)[0] for p in folder.iterdir()
+                          if p.name.endswith((".yaml", ".yml"))}
+        except (ModuleNotFoundError, OSError, TypeError, ValueError):
+            return None
+    return found
+
+
+def check_sweep_choices(config) -> None:
+    """Refuse a multirun sweeping a config group over an option that does not exist
+    (``tracker=p,nope``) before any job runs, naming it and the group's options."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    try:
+        overrides = OverridesParser.create().parse_overrides(
+            [str(x) for x in config.hydra.overrides.task])
+    except Exception:
+        return  # Hydra reports it
+    for o in overrides:
+        group = o.key_or_group.split("@")[0]
+        if not o.is_sweep_override() or o.is_hydra_override():
+            continue
+        options = _group_options(config, group)
+        if not options:
+            continue  # not a config group (or not listable: Hydra checks it)
+        try:
+            values = [str(v) for v in o.sweep_string_iterator()]
+        except Exception:
+            continue  # a range or glob: Hydra checks it
+        unknown = [v for v in values if v not in options]
+        if unknown:
+            print(f"torchmocap: error: {group}={','.join(values)}: no {group} "
+                  f"{'option' if len(unknown) == 1 else 'options'} {', '.join(unknown)}; "
+                  f"the options are {', '.join(sorted(options))}", file=sys.stderr)
+            sys.exit(2)
+
+
 def console_main(hydra_main, argv=None) -> None:
     """Run a Hydra main as a console command: the repository's ``conf/`` search-path warning
     silenced (it exists only in a checkout), ``argv`` (a function of ``sys.argv[1:]``) applied
-    first, and exit status 2 when any job of a sweep failed."""
+    first, then a multirun's settings deferred to its jobs (:func:`sweep_overrides`), and exit
+    status 2 when any job of a sweep failed."""
     import warnings
 
     warnings.filterwarnings("ignore", message=r".*provider=hydra\.searchpath in main.*")
     if argv is not None:
         sys.argv[1:] = argv(sys.argv[1:])
+    sys.argv[1:] = sweep_overrides(sys.argv[1:])
     hydra_main()
     if sweep_failed():
         sys.exit(2)

@@ -39,7 +39,13 @@ from torchmocap.cli.runs import (
     run_fingerprint,
 )
 
-__all__ = ["main", "run"]
+__all__ = ["OUTPUT_SETTINGS", "main", "run"]
+
+#: settings that change what a run writes or how it runs, not the track: a checkpoint made
+#: with other values of these is resumed
+OUTPUT_SETTINGS = ("progress", "threads", "overlays", "overlay_scale", "video", "glb",
+                   "checkpoint", "checkpoint_every", "skip_completed", "sequence_cache",
+                   "diagnostics")
 
 
 def _sequence_fingerprint(seq) -> str:
@@ -72,14 +78,14 @@ def run(cfg: DictConfig, out: Path) -> dict:
     # a rerun in place: the old records must not outlive this run's config
     for stale in ("failure.json", "metrics.json"):
         (out / stale).unlink(missing_ok=True)
-    governor = thread_policy(cfg)
-    validate_tracker(cfg)  # settings errors before any loading, fitting or synthesis
-    validate_outputs(cfg)
-    ckpt = _checkpoint_path(cfg, out)
-    every = cfg.get("checkpoint_every", 10)
-    check_checkpoint(ckpt, every)
     with reported_warnings("torchmocap-track") as warned:
-        seq = load_sequence(cfg, min_frames=2)
+        governor = thread_policy(cfg)
+        validate_tracker(cfg)  # settings errors before any loading, fitting or synthesis
+        validate_outputs(cfg)
+        ckpt = _checkpoint_path(cfg, out)
+        every = cfg.get("checkpoint_every", 10)
+        check_checkpoint(ckpt, every)
+        seq = load_sequence(cfg, min_frames=2, min_views=2)
         inputs = seq.meta.inputs
         fingerprint = run_fingerprint(settings, inputs)
         tracked, _ = split_heldout(seq)  # the views the tracker sees (all but a held-out camera)
@@ -92,9 +98,11 @@ def run(cfg: DictConfig, out: Path) -> dict:
             if hint and cfg.tracker.get("name") != hint:
                 raise type(e)(f"{e} (this data is tracked with tracker={hint})") from e
             raise
+        # the checkpoint's fingerprint: what the track depends on (output settings left out)
+        tracking = run_fingerprint(config_fingerprint(cfg, exclude=OUTPUT_SETTINGS), inputs)
         track = tracker.run(tracked, progress=bool(cfg.get("progress", True)), checkpoint=ckpt,
                             checkpoint_every=every,
-                            fingerprint=f"{fingerprint}-{_sequence_fingerprint(tracked)}",
+                            fingerprint=f"{tracking}-{_sequence_fingerprint(tracked)}",
                             callbacks=[governor])
     return finish(cfg, out, seq, runtime, tracker, track, fingerprint,
                   {"threads": governor.summary(), "inputs": inputs, "warnings": warned})

@@ -26,6 +26,38 @@ from omegaconf import DictConfig, OmegaConf
 from torchmocap.cli.runs import console_main, hydra_task
 
 
+def _check_learned_term(cfg: DictConfig, base: type) -> None:
+    """Refuse a ``term`` whose class is not a learned likelihood term (naming the options)."""
+    from importlib import resources
+
+    import yaml
+    from hydra.utils import get_object
+
+    target = cfg.term.get("_target_")
+    try:
+        cls = get_object(str(target))
+    except Exception:
+        cls = None
+    if isinstance(cls, type) and issubclass(cls, base):
+        return
+    learned = []
+    for p in sorted((resources.files("torchmocap") / "conf" / "term").iterdir()):
+        if p.name.endswith(".yaml"):
+            t = (yaml.safe_load(p.read_text(encoding="utf-8")) or {}).get("_target_")
+            try:
+                if issubclass(get_object(str(t)), base):
+                    learned.append(p.name[:-5])
+            except Exception:
+                continue
+    from hydra.core.hydra_config import HydraConfig
+
+    choice = HydraConfig.get().runtime.choices.get("term") if HydraConfig.initialized() \
+        else None
+    raise ValueError(f"term{'=' + choice if choice else ''}: {target} is not a learned "
+                     f"likelihood term (nothing of it is trained); torchmocap-train trains "
+                     f"term={' | '.join(learned)}")
+
+
 def run(cfg: DictConfig, out: Path) -> dict:
     """Train as configured; returns the summary written to ``out/summary.json``."""
     import time
@@ -40,6 +72,7 @@ def run(cfg: DictConfig, out: Path) -> dict:
     from torchmocap.likelihoods.learned import LearnedLikelihood
 
     seed = check_seed(cfg.seed)
+    _check_learned_term(cfg, LearnedLikelihood)  # before any synthesis
     o = cfg.objective
     settings = TrainSettings(
         objective=str(o.name), err_scale=float(o.err_scale),

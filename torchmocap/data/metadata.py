@@ -73,6 +73,9 @@ class SequenceMeta:
         mask_report: the computed masks' report (cache entry, preview, fractions).
         background: the background plates of each camera.
         images_bytes: bytes of the decoded images.
+        view_consistency: each view's agreement with the others on the first frames, the
+            subject's triangulated size and the cameras' distances to it
+            (:func:`~torchmocap.data.recordings.checks.view_consistency`).
 
     The subject and the first pose fitted by the source (:mod:`torchmocap.data.subjects`):
         subject_skeleton: the tracking skeleton (:meth:`~torchmocap.skeleton.Skeleton.to_dict`).
@@ -121,6 +124,7 @@ class SequenceMeta:
     mask_report: dict[str, Any] | None = None
     background: dict[str, list[str]] | None = None
     images_bytes: int | None = None
+    view_consistency: dict[str, Any] | None = None
     # the subject fitted by the source
     subject_skeleton: dict[str, Any] | None = None
     initial_poses: list[list[float]] | None = None

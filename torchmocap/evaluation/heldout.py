@@ -25,6 +25,7 @@ Example:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -62,11 +63,15 @@ class ReprojectionScores:
     frame_median_px: torch.Tensor
     frame_count: torch.Tensor
 
-    def summary(self) -> dict[str, float]:
-        """The scalar scores as a plain dict (for ``metrics.json``)."""
-        return {"median_px": self.median_px, "mean_px": self.mean_px, "pck_05": self.pck_05,
-                "pck_10": self.pck_10, "num_compared": self.num_compared,
-                "num_missing": self.num_missing}
+    def summary(self) -> dict[str, float | None]:
+        """The scalar scores as a plain dict (for ``metrics.json``; None where nothing was
+        compared: a view without detections)."""
+        def value(x: float) -> float | None:
+            return None if math.isnan(x) else x
+
+        return {"median_px": value(self.median_px), "mean_px": value(self.mean_px),
+                "pck_05": value(self.pck_05), "pck_10": value(self.pck_10),
+                "num_compared": self.num_compared, "num_missing": self.num_missing}
 
 
 def reprojection_scores(points3d: torch.Tensor, detections: torch.Tensor, rig,
@@ -181,8 +186,8 @@ class HeldOutView:
             (pixels of the full-size images).
         scores: the track's :class:`ReprojectionScores` (``None`` without detections).
         hold_first_pose: the same of a do-nothing track that keeps the first pose.
-        silhouette_iou: ``(T,)`` IoU of the capsule body with the view's masks (None without
-            masks).
+        silhouette_iou: ``(T,)`` IoU of the capsule body with the view's masks (NaN where the
+            mask is empty; None without masks).
         hold_first_iou: the same of the first pose held.
         mapping: ``{detector keypoint: {joint, frame, offset}}``: which model point each
             compared detection is compared with (joint + offset in the frame joint's bone
@@ -210,10 +215,12 @@ class HeldOutView:
             d = {}
             if scores is not None:
                 d.update(scores.summary())
-                d["median_px"] /= self.pixel_scale
-                d["mean_px"] /= self.pixel_scale
-            if iou is not None:
-                d["silhouette_iou"] = float(iou.mean())
+                for k in ("median_px", "mean_px"):
+                    if d[k] is not None:
+                        d[k] /= self.pixel_scale
+            if iou is not None:  # None: the view's masks are empty in every frame
+                d["silhouette_iou"] = None if bool(iou.isnan().all()) else \
+                    float(iou.nanmean())
             return d
 
         out.update(part(self.scores, self.silhouette_iou))
@@ -297,11 +304,14 @@ def heldout_view_scores(seq, runtime, theta: torch.Tensor, camera: int | str = 0
                 return render_capsule_silhouettes(runtime.body, rig,
                                                   th.to(sk.offsets.dtype))[:, :H, :W]
 
-            iou = torch.stack([silhouette_iou(model(theta[t]), masks[t:t + 1])[0]
-                               for t in range(T)])
+            # a frame whose mask is empty has no silhouette to score (NaN), not an IoU of 0
+            empty = ~masks.flatten(1).any(-1)
+            nan = torch.tensor(float("nan"), dtype=torch.float64)
+            iou = torch.stack([nan if empty[t] else silhouette_iou(
+                model(theta[t]), masks[t:t + 1])[0] for t in range(T)])
             start = model(theta[0])
-            iou_first = torch.stack([silhouette_iou(start, masks[t:t + 1])[0]
-                                     for t in range(T)])
+            iou_first = torch.stack([nan if empty[t] else silhouette_iou(
+                start, masks[t:t + 1])[0] for t in range(T)])
     scale = 1.0 if seq.meta.scale is None else seq.meta.scale
     return HeldOutView(camera=names[camera], pixel_scale=float(scale), scores=scores,
                        hold_first_pose=first, silhouette_iou=iou, hold_first_iou=iou_first,

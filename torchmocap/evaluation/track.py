@@ -30,9 +30,9 @@ from torchmocap.likelihoods.silhouette import check_fit_iou
 
 __all__ = ["TrackEvaluation", "evaluate_track", "tracked_keypoint_map"]
 
-#: sequence meta entries reported beside the scores (a recording's hull top, subject scale and
-#: subject fit)
-META_KEYS = ("hull_top_m", "skeleton_scale", "source", "subject_fit")
+#: sequence meta entries reported beside the scores (a recording's hull top, subject scale,
+#: subject fit and its views' agreement)
+META_KEYS = ("hull_top_m", "skeleton_scale", "source", "subject_fit", "view_consistency")
 
 
 @dataclass
@@ -91,9 +91,10 @@ def evaluate_track(seq, runtime, tracker, track, energy_vs_truth: bool = False,
         markers ``marker_error_mm``, with hypotheses ``hypotheses``, and on request
         ``estimate_energy_below_truth``; without ground truth ``silhouette_iou``; with 2D
         joints ``reprojection_px``; the sequence's ``hull_top_m``, ``skeleton_scale``,
-        ``source`` and ``subject_fit`` when it has them; without ground truth, over 3 frames or
-        more, ``consistency`` (:func:`~torchmocap.evaluation.track_consistency`: bone-length CV and
-        jitter of the mapped keypoints, or of the joints); with a keypoint map, the track's
+        ``source``, ``subject_fit`` and ``view_consistency`` when it has them; without ground
+        truth, over 3 frames or more, ``consistency``
+        (:func:`~torchmocap.evaluation.track_consistency`: bone-length CV and jitter of the
+        mapped keypoints, or of the joints); with a keypoint map, the track's
         scores in each tracked view's detections (``tracked_views``: median px of the full-size
         images, PCK) and with ``heldout`` those in the held-out view (``heldout``:
         :meth:`~torchmocap.evaluation.HeldOutView.summary`, with the first pose held beside
@@ -149,7 +150,8 @@ def evaluate_track(seq, runtime, tracker, track, energy_vs_truth: bool = False,
     else:
         metrics["silhouette_iou"] = iou = silhouette_agreement(seq, runtime.body, runtime.rig,
                                                                track.theta)
-        if iou:  # no truth: an IoU far below a fit's is the sign of wrong masks or cameras
+        if iou and iou["mean_over_frames"] is not None:  # no truth: an IoU far below a
+            # fit's is the sign of wrong masks or cameras
             check_fit_iou(iou["mean_over_frames"], "silhouette_iou", EvaluationWarning)
     if seq.joints2d is not None and runtime.rig is not None:
         metrics["reprojection_px"] = reprojection_error(seq, sk, runtime.rig, track.theta)

@@ -35,15 +35,24 @@ def reprojection_error(seq, skeleton, rig, theta: torch.Tensor,
 def silhouette_agreement(seq, body, rig, theta: torch.Tensor) -> dict:
     """Per-view silhouette IoU of the model capsules at ``theta (T, D)`` against the masks:
     ``{per_view (of the last frame), mean (of the last frame), mean_over_frames}``; ``{}``
-    without masks or cameras."""
+    without masks or cameras. A view whose mask is empty has nothing to score: None in
+    ``per_view``, left out of the means (None when no view has a mask)."""
     from torchmocap.likelihoods import render_capsule_silhouettes, silhouette_iou
 
     if seq.silhouettes is None or rig is None:
         return {}
+
+    def mean(values):
+        seen = [v for v in values if v is not None]
+        return sum(seen) / len(seen) if seen else None
+
     per = []
     for t in range(seq.num_frames):
         model = render_capsule_silhouettes(body, rig, theta[t])
-        per.append([float(v) for v in silhouette_iou(model, seq.silhouettes[t])])
+        has = seq.silhouettes[t].flatten(1).any(-1).tolist()
+        per.append([float(v) if h else None
+                    for v, h in zip(silhouette_iou(model, seq.silhouettes[t]), has)])
     last = per[-1]
-    return {"per_view": last, "mean": sum(last) / len(last),
-            "mean_over_frames": sum(sum(p) / len(p) for p in per) / len(per)}
+    frames = [m for m in (mean(p) for p in per) if m is not None]
+    return {"per_view": last, "mean": mean(last),
+            "mean_over_frames": sum(frames) / len(frames) if frames else None}

@@ -198,8 +198,15 @@ def _parse_hierarchy(lines: list[str], path: str) -> list[_Joint]:
     return joints
 
 
-def _parse_motion(lines: list[str], start: int, n_channels: int, path: str):
-    """Parse the lines after ``MOTION`` (``start`` = 0-based index of the first of them)."""
+#: largest magnitude (degrees) of a rotation channel: 1e5 degrees are 278 turns, more than any
+#: unwrapped angle of a recorded motion; beyond it a value is corrupted (1e20 keeps no angle)
+MAX_ANGLE_DEG = 1e5
+
+
+def _parse_motion(lines: list[str], start: int, n_channels: int, path: str,
+                  angles: list[str] | None = None):
+    """Parse the lines after ``MOTION`` (``start`` = 0-based index of the first of them);
+    ``angles``: per channel, its ``joint channel`` name when it is a rotation (else None)."""
     body = [(i + 1, s.strip()) for i, s in enumerate(lines[start:], start=start) if s.strip()]
     if len(body) < 2:
         raise MotionFormatError(
@@ -258,6 +265,16 @@ def _parse_motion(lines: list[str], start: int, n_channels: int, path: str):
     if bad.any():
         k = int(np.argmax(bad))
         raise MotionFormatError("frame holds NaN or infinity", path, data[k][0])
+    if angles is not None:
+        cols = [i for i, a in enumerate(angles) if a is not None]
+        if cols:
+            big = np.abs(values[:, cols]) > MAX_ANGLE_DEG
+            if big.any():
+                k, i = (int(x) for x in np.argwhere(big)[0])
+                raise MotionFormatError(
+                    f"frame {k}: {angles[cols[i]]} = {values[k, cols[i]]:g} degrees is not an "
+                    f"angle (rotation channels are at most {MAX_ANGLE_DEG:g} degrees in "
+                    f"magnitude; a corrupted value?)", path, data[k][0])
     return values, _snap_fps(m.group(1), dt)
 
 
@@ -291,7 +308,9 @@ def parse_bvh(text: str, path: str = "<bvh>") -> tuple[list[_Joint], np.ndarray,
     n_channels = sum(len(j.channels) for j in joints)
     if n_channels == 0:
         raise MotionFormatError("the hierarchy has no channels", path, motion + 1)
-    values, fps = _parse_motion(lines, motion + 1, n_channels, path)
+    angles = [f"joint {j.name} channel {c}" if c.lower().endswith("rotation") else None
+              for j in joints for c in j.channels]
+    values, fps = _parse_motion(lines, motion + 1, n_channels, path, angles)
     return joints, values, fps
 
 

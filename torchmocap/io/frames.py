@@ -60,6 +60,11 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v")
 
 
+#: codecs of still images (ffmpeg's names): such a "video" is one picture
+_IMAGE_CODECS = {"png", "bmp", "tiff", "webp", "jpeg2000", "jpegls", "qoi", "ppm", "pgm",
+                 "pam", "pbm"}
+
+
 class FrameSourceError(ValueError):
     """A video or image folder cannot be read as frames (names the file)."""
 
@@ -203,6 +208,12 @@ class VideoFrames:
         self.fps = fps
         self.codec = str(meta.get("codec", "?"))
         self.num_frames = self._count_frames()
+        codec = self.codec.split(",")[0].strip().lower()
+        if codec in _IMAGE_CODECS or (self.num_frames == 1 and not meta.get("duration")):
+            raise FrameSourceError(
+                f"{self.path}: a single {codec.upper()} image, not a video (one frame, no "
+                "duration); a camera's frames are a video, or a folder of images "
+                "(images/<cam>/000000.png, ...)")
 
     def _count_frames(self) -> int:
         cmd = [self._exe, "-hide_banner", "-nostdin", "-i", str(self.path), "-map", "0:v:0",
@@ -268,16 +279,23 @@ class VideoFrames:
 
 
 class ImageFolderFrames:
-    """Frames of a folder of images (``.png``/``.jpg``/``.jpeg``/``.bmp``), in natural order.
+    """Frames of a folder of images (``.png``/``.jpg``/``.jpeg``/``.bmp``).
+
+    Numbered images (every name holds a number, :func:`frame_number`) are frames by number:
+    frame ``t`` is the image numbered ``first + t``, so that the frames of several cameras and
+    their per-frame keypoint files stay paired. A number missing between the first and the
+    last is a gap: :meth:`missing` names it, and reading it is refused (the later images are
+    never shifted into its place). Images without numbers are frames in natural order.
 
     Attributes:
-        path: the folder; files: the image files in frame order.
+        path: the folder; files: the image files in frame order (None at a gap).
         size: ``(width, height)`` of the first image (every frame must have it).
         fps: None (images carry no frame rate).
-        num_frames: number of images.
+        num_frames: number of frames (from the first number to the last).
 
     Raises:
-        FrameSourceError: a missing folder, a folder without images, an unreadable first image.
+        FrameSourceError: a missing folder, a folder without images, an unreadable first image,
+            two images of one frame number.
     """
 
     fps: float | None = None
@@ -295,7 +313,50 @@ class ImageFolderFrames:
         if not self.files:
             raise FrameSourceError(f"{self.path}: no images ({', '.join(IMAGE_SUFFIXES)})")
         self.size = _image_size(self.files[0])
+        numbered: dict[int, Path] = {}
+        for f in self.files:
+            if not re.search(r"\d", f.stem):
+                break
+            n = frame_number(f)
+            if n in numbered:
+                raise FrameSourceError(f"{self.path}: {numbered[n].name} and {f.name} are both "
+                                       f"frame {n}")
+            numbered[n] = f
+        else:
+            first = min(numbered)
+            self.first_number = first
+            self.files = [numbered.get(n) for n in range(first, max(numbered) + 1)]
         self.num_frames = len(self.files)
+
+    #: the number of frame 0 (numbered images), else None
+    first_number: int | None = None
+
+    def missing(self, start: int = 0, stop: int | None = None, stride: int = 1) -> list[int]:
+        """Frames ``start, start + stride, ... < stop`` without an image (a gap in the
+        numbers)."""
+        stop = self.num_frames if stop is None else min(stop, self.num_frames)
+        return [t for t in range(start, stop, stride) if self.files[t] is None]
+
+    def check_complete(self, start: int = 0, stop: int | None = None, stride: int = 1) -> None:
+        """Refuse a gap among frames ``start, start + stride, ... < stop``.
+
+        Raises:
+            FrameSourceError: naming the folder, the first missing frame and the numbers.
+        """
+        gaps = self.missing(start, stop, stride)
+        if gaps:
+            raise self._gap_error(gaps[0])
+
+    def _gap_error(self, t: int) -> FrameSourceError:
+        gaps = self.missing()
+        named = ", ".join(str(self.first_number + g) for g in gaps[:5]) + \
+            (", ..." if len(gaps) > 5 else "")
+        return FrameSourceError(
+            f"{self.path}: no image for frame {t} (the images are numbered "
+            f"{self.first_number}..{self.first_number + self.num_frames - 1}; number(s) "
+            f"{named} missing): frames pair by number with the other cameras and the keypoint "
+            f"files, so a gap is not skipped; fill it (e.g. with a copy of its neighbour) or "
+            f"load only the frames before it (data.stop={gaps[0]})")
 
     def frames(self, start: int = 0, stop: int | None = None, stride: int = 1,
                scale: float = 1.0) -> Iterator[np.ndarray]:
@@ -311,6 +372,8 @@ class ImageFolderFrames:
         idx = check_frame_range(self.num_frames, start, stop, stride, scale, str(self.path))
         for i in idx:
             p = self.files[i]
+            if p is None:
+                raise self._gap_error(i)
             note_input(p)
             try:
                 with Image.open(p) as im:

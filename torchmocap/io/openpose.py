@@ -208,6 +208,8 @@ def body25_plausibility(people: Sequence[Tensor]) -> float | None:
     """
     ratios = []
     for x in people:
+        if x.shape[0] == 0 or x.shape[1] != 25:  # nobody in the file
+            continue
         for mid, a, b in _BODY25_MIDPOINTS:
             seen = (x[:, [mid, a, b], 2] > 0).all(-1)
             if not bool(seen.any()):
@@ -249,8 +251,11 @@ def check_keypoint_format(fmt: str, people: Sequence[Tensor], source: str = "key
         raise KeypointFormatError(f"{source}: files with different keypoint counts {counts}")
     if not counts:
         if fmt == "auto":
-            raise KeypointFormatError(f"{source}: no detections to tell the keypoint format "
-                                      "from; set keypoints.format")
+            raise KeypointFormatError(f"{source}: nobody is detected in any file, so there "
+                                      "is no subject to track (and no detection to tell the "
+                                      "keypoint format from); choose other frames (data.start, "
+                                      "data.stop) or load without keypoints "
+                                      "(data.keypoints.source=none)")
         keypoint_format(fmt)
         return fmt.lower().replace("-", "_")
     K = counts.pop()
@@ -274,7 +279,7 @@ def check_keypoint_format(fmt: str, people: Sequence[Tensor], source: str = "key
         if fmt == "auto":
             raise KeypointFormatError(f"{source}: 25 keypoints, but no person shows both hips or "
                                       "both shoulders to tell BODY_25 from BODY_25B; set "
-                                      "keypoints.format")
+                                      "data.keypoints.format")
         return fmt
     looks = "body_25" if ratio < threshold else "body_25b"
     if fmt not in ("auto", looks):
@@ -282,5 +287,5 @@ def check_keypoint_format(fmt: str, people: Sequence[Tensor], source: str = "key
             f"{source}: declared {fmt!r}, but the detections look like {looks!r}: keypoints "
             f"1 and 8 lie at {ratio:.2f} of the shoulder / hip span from the midpoints of "
             f"(2, 5) and (9, 12) (BODY_25's Neck and MidHip lie near 0; BODY_25B has LEye and "
-            f"RElbow there); set keypoints.format to {looks!r}")
+            f"RElbow there); set data.keypoints.format to {looks!r}")
     return looks

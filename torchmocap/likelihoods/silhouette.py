@@ -598,8 +598,9 @@ def soft_capsule_silhouettes(endpoints: torch.Tensor, radii: torch.Tensor, rig,
     """Differentiable capsule silhouettes ``(P, C, H', W')`` in [0, 1] of capsule axes
     ``endpoints (P, B, 2, 3)`` with ``radii (B,)``: the sigmoid of each pixel centre's coverage
     margin ``r(t) − d`` (pixels, :func:`_coverage_margin`) over ``tau``, on every ``stride``-th
-    pixel (``H' = ceil(H / stride)``). Gradients reach the poses and the radii. All cameras
-    need one image size.
+    pixel (``H' = ceil(H / stride)``) of the largest view's size ``(W, H)``; a smaller view
+    fills the top-left corner (as in a sequence's masks) and is 0 outside its own image.
+    Gradients reach the poses and the radii.
 
     Example:
         >>> from torchmocap.body import CapsuleBody
@@ -616,10 +617,8 @@ def soft_capsule_silhouettes(endpoints: torch.Tensor, radii: torch.Tensor, rig,
         raise ValueError(f"stride: expected an int >= 1, got {stride!r}")
     if not tau > 0:
         raise ValueError(f"tau: expected a value > 0, got {tau!r}")
-    sizes = {tuple(int(v) for v in sz) for sz in rig.image_size.tolist()}
-    if len(sizes) != 1:
-        raise ValueError(f"rig: all cameras need one image size, got {sorted(sizes)}")
-    W, H = sizes.pop()
+    sizes = [tuple(int(v) for v in sz) for sz in rig.image_size.tolist()]
+    W, H = max(w for w, _ in sizes), max(h for _, h in sizes)
     st = _stadiums(endpoints, radii, rig)
     dt = st.ax.dtype
     ys = torch.arange(0, H, stride, dtype=dt, device=st.ax.device)
@@ -629,6 +628,10 @@ def soft_capsule_silhouettes(endpoints: torch.Tensor, radii: torch.Tensor, rig,
     C, P = st.ax.shape[0], endpoints.shape[0]
     margin = _coverage_margin(q.expand(C, -1, -1), st, smooth=True)  # (C, N, P)
     soft = torch.sigmoid(margin / tau)
+    if len(set(sizes)) > 1:  # a smaller view: nothing outside its own image (the padding)
+        own = torch.tensor(sizes, dtype=dt, device=st.ax.device)  # (C, 2)
+        inside = (q[0, None, :, 0] < own[:, None, 0]) & (q[0, None, :, 1] < own[:, None, 1])
+        soft = soft * inside[..., None].to(dt)
     return soft.permute(2, 0, 1).reshape(P, C, ys.numel(), xs.numel())
 
 

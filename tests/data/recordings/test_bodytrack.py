@@ -70,12 +70,15 @@ TALL = r"visual hull is 2\.28 m tall, a subject 1\.30 x .* the skeleton is held 
                   TALL]),
     ("all", [r"masks of FG1, FG2, FG3, FG4 are more than 50 % foreground \(FG1 100\.0 %",
              TALL]),
-    ("swapped", [r"visual hull is 1\.28 m tall, a subject 0\.73 x human31's 1\.75 m, outside "
+    ("swapped", [r"^data\.cameras: no three views' masks agree \(FG1 \d+ %, FG2 \d+ %, FG3 "
+                 r"\d+ %, FG4 \d+ % agreement with the hull of the others; the limit is 70 %\)",
+                 r"visual hull is 1\.28 m tall, a subject 0\.73 x human31's 1\.75 m, outside "
                  r"the scale range \[0\.85, 1\.15\]: the skeleton is held at 0\.85"]),
 ])
 def test_implausible_masks_or_calibrations_are_reported(frame_copy, case, messages):
     """Inverted or all-foreground masks and swapped calibrations fitted a body at the clamp of
-    its scale range with no warning."""
+    its scale range with no warning. Swapped calibrations are refused by the views' agreement
+    (reported, with the fit's warning, with ``checks="warn"``)."""
     import re
     import warnings
 
@@ -90,9 +93,14 @@ def test_implausible_masks_or_calibrations_are_reported(frame_copy, case, messag
         (cal / "Camera1.cal").rename(cal / "tmp")
         (cal / "Camera3.cal").rename(cal / "Camera1.cal")
         (cal / "tmp").rename(cal / "Camera3.cal")
+    from torchmocap.data.recordings.checks import RecordingCheckError
+
+    if case == "swapped":
+        with pytest.raises(RecordingCheckError, match=messages[0]):
+            load_bodytrack_sequence(frame_copy)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        seq = load_bodytrack_sequence(frame_copy)
+        seq = load_bodytrack_sequence(frame_copy, checks="warn")
     got = [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
     assert len(got) == len(messages), got
     assert all(re.search(m, g) for m, g in zip(messages, got)), got
@@ -116,9 +124,14 @@ def test_exception_empty_hull_says_what_was_read(frame_copy):
     _rewrite_masks(frame_copy, lambda a: np.where(np.arange(a.shape[1]) < 320, a, 0))
     p = frame_copy / "FG2" / "image0000.png"
     Image.fromarray(np.zeros((480, 640), np.uint8)).save(p)
-    with pytest.raises(ValueError, match=r"visual hull of the masks is empty: .*foreground "
-                                         r"read: FG1 \d\.\d %, FG2 0\.0 %, FG3"):
+    with pytest.raises(ValueError, match=r"no three views' masks agree .*; the mask of FG2 is "
+                                         r"empty \(foreground read: FG1 \d\.\d %, FG2 0\.0 %, "
+                                         r"FG3"):
         load_bodytrack_sequence(frame_copy)
+    with pytest.raises(ValueError, match=r"visual hull of the masks is empty: .*foreground "
+                                         r"read: FG1 \d\.\d %, FG2 0\.0 %, FG3"), \
+            pytest.warns(UserWarning, match="no three views' masks agree"):
+        load_bodytrack_sequence(frame_copy, checks="warn")
 
 
 def test_exception_binary_calibration_names_the_file(frame_copy):

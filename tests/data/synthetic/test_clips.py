@@ -113,6 +113,23 @@ def test_exception_more_frames_than_the_clip_has():
     assert seq.num_frames == 5  # null = what is left: frames 95..99 (t = 3.8 .. 3.96 s)
 
 
+def test_exception_a_clip_shorter_than_a_track(shared_data, tmp_path):
+    """A two-frame BVH (120 fps: one frame at 25 fps) suggested ``data.clip.frames <= 1``,
+    itself refused; the message says how many frames there are and what gives more."""
+    lines = (shared_data / "mocap" / "cmu" / "131_01.bvh").read_text().splitlines()
+    m = lines.index("MOTION")
+    (tmp_path / "two.bvh").write_text("\n".join(
+        [*lines[:m + 1], "Frames: 2", lines[m + 2], *lines[m + 3:m + 5]]) + "\n")
+    for frames in (4, "auto"):
+        with pytest.raises(DataConfigError, match=r"^data\.clip: the clip has 1 frame\(s\) after "
+                                                  r"start 0 s at 25 fps \(the file: 2 at 120 "
+                                                  r"fps; data\.clip\.fps=120 keeps its rate\); "
+                                                  r"tracking needs at least 2") as e:
+            synthesized_sequence(_clip(path=str(tmp_path / "two.bvh"), frames=frames), "clean",
+                                 FAST, seed=0)
+        assert "frames <=" not in str(e.value)
+
+
 @pytest.mark.parametrize("seed", [1.5, 1.0, True, "3", None])
 def test_exception_seed(seed):
     """``seed=1.5`` used to run seed 1 (``int(seed)``)."""

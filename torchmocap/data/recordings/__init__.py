@@ -7,7 +7,9 @@
   among several people by :mod:`~torchmocap.data.recordings.person_selection`), and masks from
   files or computed (:mod:`~torchmocap.data.recordings.mask_source`,
   :mod:`~torchmocap.data.recordings.masks`); the subject and the first pose fitted to the
-  first frames (:mod:`torchmocap.data.subjects.recorded`).
+  first frames (:mod:`torchmocap.data.subjects.recorded`); before anything is tracked, the
+  views' agreement, the calibration's unit and the detections are checked
+  (:mod:`~torchmocap.data.recordings.checks`).
 * :func:`load_bodytrack_sequence` (``data=bodytrack``): PARSEC's one real 4-camera frame.
 """
 

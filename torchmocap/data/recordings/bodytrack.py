@@ -104,7 +104,7 @@ def _numbers(rig) -> list[str]:
 
 @data_source(provides=("images", "silhouettes", "rig"), trackers=("real_frame", "real_frame_hull"))
 def load_bodytrack_sequence(path: str | Path, scale: float = 1.0, headings: int = 12,
-                            voxel: float = 0.04, seed: int = 0):
+                            voxel: float = 0.04, checks: str = "refuse", seed: int = 0):
     """One bodytrack frame as a :class:`~torchmocap.data.Sequence` (``scenario="recorded"``).
 
     Args:
@@ -112,19 +112,27 @@ def load_bodytrack_sequence(path: str | Path, scale: float = 1.0, headings: int 
         scale: image scale (0.5 = 320x240).
         headings: number of candidate headings of the standing start poses.
         voxel: visual-hull voxel size (metres).
+        checks: ``refuse`` or ``warn``: what masks that disagree with the other views' are
+            (:func:`~torchmocap.data.recordings.checks.mask_consistency`; the report is
+            ``meta.view_consistency``).
         seed: unused (the loader is deterministic); accepted like every data source's.
     """
     from torchmocap.data.metadata import SequenceMeta
+    from torchmocap.data.recordings.checks import check_mode, check_views, mask_consistency
     from torchmocap.data.sequence import Sequence
     from torchmocap.data.subjects.recorded import hull_start
 
+    check_mode(checks)
     root = Path(str(path)).expanduser().absolute()
     rig, images, masks = load_bodytrack(root, float(scale))
+    labels = [f"FG{n}" for n in _numbers(rig)]
+    consistency = mask_consistency(masks, rig, labels)  # the views' masks agree
+    check_views(consistency, checks)
     start = hull_start(rig, masks, headings, float(voxel),
                        labels=[f"FG{n}" for n in _numbers(rig)])
     colour = images[..., None].expand(*images.shape, 3).contiguous()
     return Sequence(
         fps=25.0, scenario="recorded", rig=rig.float(), silhouettes=masks[None],
         view_dropped=torch.zeros(1, rig.num_cameras, dtype=torch.bool), images=colour[None],
-        meta=SequenceMeta(source="bodytrack", path=str(root),
-                          suggested_tracker="real_frame").update(start))
+        meta=SequenceMeta(source="bodytrack", path=str(root), suggested_tracker="real_frame",
+                          view_consistency=consistency).update(start))

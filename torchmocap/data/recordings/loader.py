@@ -6,12 +6,15 @@ image folder per camera, optional OpenPose keypoints, masks and background plate
 
 * every chosen camera has a calibration entry (matched by the number in its name, refused when
   missing or ambiguous);
-* the calibrated image size is the decoded one — except a codec's macroblock crop (fewer than
-  16 pixels missing at the right or bottom edge, e.g. a 1088-row H.264 stream cropped to 1080):
-  accepted with a warning, the camera keeps the decoded size (its intrinsics are unchanged);
+* the calibrated image size is the decoded one — except a codec's macroblock crop (the
+  calibrated size is the decoded one rounded up to a multiple of 16, e.g. a 1088-row H.264
+  stream cropped to 1080): accepted with a warning, the camera keeps the decoded size (its
+  intrinsics are unchanged); and a calibration of the same aspect ratio at another resolution
+  (a 4K calibration of 1088x1920 videos): its intrinsics are scaled, with a warning;
 * the videos have one frame rate and (unless ``stop`` stays within the shortest) one length;
-  views whose sizes differ by such a crop share one image tensor, the smaller ones padded
-  with black at the right/bottom (``meta.image_sizes`` has each view's own size);
+  views of different sizes (a codec's crop, cameras of other resolutions) share one image
+  tensor, the smaller ones padded with black at the right/bottom (``rig.image_size`` and
+  ``meta.image_sizes`` have each view's own size);
 * keypoint files exist for every loaded frame and are of the declared format.
 
 Memory: the images are ``T × C × H × W × 3`` bytes at the working scale — 100 frames of 4
@@ -33,6 +36,14 @@ import numpy as np
 import torch
 
 from torchmocap.cameras import CameraError, CameraRig, camera_key, read_calibration
+from torchmocap.data.recordings.checks import (
+    check_camera_choice,
+    check_detections,
+    check_mode,
+    check_views,
+    mask_consistency,
+    view_consistency,
+)
 from torchmocap.data.recordings.files import (
     RecordingCamera,
     discover_recording,
@@ -70,7 +81,8 @@ __all__ = ["CROP_TOLERANCE", "load_recording"]
 
 log = logging.getLogger(__name__)
 
-#: pixels a decoded frame may lack at the right / bottom edge (a codec's macroblock crop)
+#: a codec's macroblock size: a decoded frame may lack the pixels that pad its size to a
+#: multiple of it at the right / bottom edge (a codec's crop)
 CROP_TOLERANCE = 16
 #: frame rate of image folders without ``fps``
 DEFAULT_FPS = 25.0
@@ -174,23 +186,46 @@ def _match_calibration(rig: CameraRig, cams: list[RecordingCamera], path: Path) 
     return idx
 
 
+def _codec_crop(calibrated: int, decoded: int) -> bool:
+    """Whether ``decoded`` pixels are a codec's crop of ``calibrated``: the encoder pads a
+    frame to a multiple of :data:`CROP_TOLERANCE` (its macroblocks) and the decoder crops the
+    padding again, so the calibrated size is the decoded one rounded up to that multiple."""
+    m = CROP_TOLERANCE
+    return calibrated == decoded or (calibrated % m == 0 and calibrated == -(-decoded // m) * m)
+
+
 def _check_sizes(rig: CameraRig, sources: list, cams: list[RecordingCamera], calib: Path
                  ) -> CameraRig:
-    """The rig with each camera's decoded size (crop accepted with a warning)."""
-    sizes = []
+    """The rig with each camera's decoded size: a codec's crop accepted with a warning (the
+    intrinsics unchanged), a calibration of the same aspect ratio at another resolution scaled
+    with a warning, any other size refused."""
+    sizes, K = [], rig.K.clone()
     for c, (src, cam) in enumerate(zip(sources, cams)):
         W, H = (int(v) for v in rig.image_size[c].tolist())
         w, h = src.size
         if (w, h) != (W, H):
-            if not (0 <= W - w < CROP_TOLERANCE and 0 <= H - h < CROP_TOLERANCE):
-                raise CameraError(f"{cam.frames}: frames are {w}x{h} but the calibration "
-                                  f"({calib}, {rig.names[c]}) says {W}x{H}; the calibration "
-                                  "is of other images")
-            warnings.warn(f"{cam.frames}: frames are {w}x{h}, the calibration ({rig.names[c]}) "
-                          f"says {W}x{H}: a codec's crop of {W - w} columns / {H - h} rows at "
-                          f"the right / bottom edge; using {w}x{h}", stacklevel=3)
+            if _codec_crop(W, w) and _codec_crop(H, h):
+                warnings.warn(f"{cam.frames}: frames are {w}x{h}, the calibration "
+                              f"({rig.names[c]}) says {W}x{H}: a codec's crop of {W - w} "
+                              f"columns / {H - h} rows at the right / bottom edge (assumed: the "
+                              f"video was coded at {W}x{H}, the next multiple of "
+                              f"{CROP_TOLERANCE} pixels, and cropped); using {w}x{h} with the "
+                              "intrinsics unchanged", stacklevel=3)
+            elif W * h == H * w:
+                f = w / W
+                K[c] = rig.subset([c]).scaled_images(f).K[0]
+                warnings.warn(f"{cam.frames}: frames are {w}x{h}, the calibration "
+                              f"({rig.names[c]}) is of {W}x{H} images, the same aspect ratio: "
+                              f"its intrinsics are scaled by {f:g} (assumed: the same camera "
+                              "and lens recorded at another resolution)", stacklevel=3)
+            else:
+                raise CameraError(
+                    f"{cam.frames}: frames are {w}x{h} but the calibration ({calib}, "
+                    f"{rig.names[c]}) says {W}x{H}; the calibration is of other images (not a "
+                    f"codec's crop, which lacks fewer than {CROP_TOLERANCE} pixels of a multiple "
+                    f"of {CROP_TOLERANCE}, nor another resolution of the same aspect ratio)")
         sizes.append((w, h))
-    return CameraRig(rig.K, rig.R, rig.t, sizes, rig.dist, [c.name for c in cams])
+    return CameraRig(K, rig.R, rig.t, sizes, rig.dist, [c.name for c in cams])
 
 
 def _check_streams(sources: list, cams: list[RecordingCamera], fps, stop) -> tuple[float, int,
@@ -239,26 +274,38 @@ def _scale_joints(joints: torch.Tensor, scale: float) -> torch.Tensor:
     return torch.where(seen, torch.cat([uv, joints[..., 2:3]], -1), torch.zeros_like(joints))
 
 
-def _canvas(sources: list, cams: list[RecordingCamera], scale: float) -> tuple[int, int]:
-    """``(W, H)`` of the image tensor: the largest scaled view; views may be smaller only by
-    a codec's crop (they are padded at the right / bottom)."""
-    biggest = [max(s.size[i] for s in sources) for i in (0, 1)]
-    if any(b - v >= CROP_TOLERANCE for s in sources for b, v in zip(biggest, s.size)):
-        raise FrameSourceError(
-            "views of different image sizes cannot share one image tensor: " + ", ".join(
-                f"{c.frames} {s.size[0]}x{s.size[1]}" for s, c in zip(sources, cams)))
+def _canvas(sources: list, scale: float) -> tuple[int, int]:
+    """``(W, H)`` of the image tensor: the largest scaled view; smaller views (a codec's crop,
+    a camera of another resolution) fill its top-left corner, padded black at the right /
+    bottom (``rig.image_size`` and ``meta.image_sizes`` keep each view's own size)."""
     sizes = [scaled_size(s.size, scale) for s in sources]
     return max(w for w, _ in sizes), max(h for _, h in sizes)
 
 
-def _load_keypoints(source: KeypointSource, request: KeypointRequest, kp: dict[str, Any],
-                    rig: CameraRig, scale: float) -> tuple[torch.Tensor, str, dict, dict]:
-    """``joints2d (T, C, K, 3)`` float32 in the scaled images' pixels, the format, the
-    selection report and the source's report."""
+def _read_keypoints(source: KeypointSource, request: KeypointRequest, rig: CameraRig
+                    ) -> tuple[list[list[torch.Tensor]], str, bool, dict]:
+    """The source's detections of every requested view (full-size pixels), checked
+    (:func:`~torchmocap.data.recordings.checks.check_detections`), their format, whether they
+    are associated, and the source's report."""
     det = source.read(request)
-    people, fmt = det.people, det.format
+    names = [c.name for c in request.cameras]
+    folders = det.report.get("folders") if isinstance(det.report, dict) else None
+    # --- checks: the detections (torchmocap.data.recordings.checks) ---
+    people = check_detections(
+        det.people, len(keypoint_format(det.format)), names,
+        [tuple(int(v) for v in s) for s in rig.image_size.tolist()],
+        [str(folders.get(n, "")) for n in names] if isinstance(folders, dict) else None,
+        list(request.frames))
+    return people, det.format, det.associated, det.report
+
+
+def _select_keypoints(people: list[list[torch.Tensor]], fmt: str, associated: bool,
+                      kp: dict[str, Any], rig: CameraRig, names: list[str], scale: float
+                      ) -> tuple[torch.Tensor, dict]:
+    """``joints2d (T, C, K, 3)`` float32 in the scaled images' pixels of the subject chosen
+    among ``people`` (full-size pixels) and the selection report."""
     K = len(keypoint_format(fmt))
-    if not det.associated or any(x.shape[0] > 1 for frame in people for x in frame):
+    if not associated or any(x.shape[0] > 1 for frame in people for x in frame):
         joints, selection = select_person(people, rig, kp["min_confidence"])
         selection["method"] = "triangulation"
     else:
@@ -269,11 +316,11 @@ def _load_keypoints(source: KeypointSource, request: KeypointRequest, kp: dict[s
         joints = torch.where(low[..., None], torch.zeros_like(joints), joints)
         agree = person_agreement(joints, rig)
         selection = {"method": "associated", "views": {
-            cam.name: {"people": [int(frame[c].shape[0]) for frame in people],
-                       "agreement_px": [None if math.isnan(v) else round(v, 2)
-                                        for v in agree[:, c].tolist()]}
-            for c, cam in enumerate(request.cameras)}}
-    return _scale_joints(joints, scale).float(), fmt, selection, det.report
+            name: {"people": [int(frame[c].shape[0]) for frame in people],
+                   "agreement_px": [None if math.isnan(v) else round(v, 2)
+                                    for v in agree[:, c].tolist()]}
+            for c, name in enumerate(names)}}
+    return _scale_joints(joints, scale).float(), selection
 
 
 @data_source(provides=("images", "silhouettes", "joints2d", "rig"),
@@ -284,7 +331,8 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
                    masks: str = "auto", mask_settings: Mapping[str, Any] | None = None,
                    mask_cache: str | Path | None = None, subject: Mapping[str, Any] | None = None,
                    heldout_camera: str | int | None = None,
-                   fps: float | None = None, unit: str | float | None = None, seed: int = 0):
+                   fps: float | None = None, unit: str | float | None = None,
+                   checks: str = "refuse", min_views: int = 0, seed: int = 0):
     """A recording folder as a :class:`~torchmocap.data.Sequence` (``scenario="recorded"``).
 
     Args:
@@ -321,6 +369,12 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
         fps: frame rate of image folders (videos carry theirs; default 25 with a warning).
         unit: length unit of the calibration's translations; None = the format's default
             (TOML and intri/extri metres, Bouguet millimetres).
+        checks: ``refuse`` (default) or ``warn``: what views that disagree with the others
+            and a subject whose triangulated size is not a person's are
+            (:mod:`~torchmocap.data.recordings.checks`; the report is
+            ``meta.view_consistency``).
+        min_views: tracked views the caller needs (the commands: 2, to triangulate the
+            subject); fewer are refused before anything is read.
         seed: unused (loading is deterministic); accepted like every data source's.
 
     Returns:
@@ -367,6 +421,10 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
     files = discover_recording(path)
     chosen = _choose_cameras(files.cameras, cameras)
     h = _heldout_index(chosen, files.cameras, heldout_camera)
+    # --- checks: enough tracked views, the check mode (torchmocap.data.recordings.checks) ---
+    check_camera_choice([c.name for c in chosen], None if h is None else chosen[h].name,
+                        min_views)
+    check_mode(checks)
     seen = [i for i in range(len(chosen)) if i != h]
     kp = keypoint_settings(keypoints)
     fit_settings = subject_settings(subject)
@@ -378,6 +436,9 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
         frames = check_frame_range(length, start, stop, stride, scale, "the recording")
     except ValueError as e:
         raise ValueError(f"data.{e}") from None
+    for src in sources:  # numbered images pair by number: a gap is refused, never shifted
+        if hasattr(src, "check_complete"):
+            src.check_complete(frames.start, frames.stop, frames.step)
     if fps_source == "default" and len(frames) > 1:
         warnings.warn(f"{files.root}: image folders carry no frame rate; using "
                       f"{DEFAULT_FPS:g} fps (set data.fps)", stacklevel=2)
@@ -386,21 +447,38 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
     calibrated = full.subset(idx)
     rig = _check_sizes(calibrated, sources, chosen, files.calibration)
 
-    canvas = _canvas(sources, chosen, scale)
+    canvas = _canvas(sources, scale)
     request = KeypointRequest(files.root, chosen, frames, kp["format"], sources)
     source = choose_keypoint_source(kp, request)
     mode = mask_mode(masks, chosen, source is not None, files.root, source)
-    joints2d, fmt, selection, kp_report = (None, None, None, None) if source is None else \
-        _load_keypoints(source, request, kp, rig, scale)
-    request_seen, seen_report = request, kp_report
+    joints2d, fmt, selection, kp_report, consistency = None, None, None, None, None
+    names = [c.name for c in chosen]
+    request_seen, seen_report = request, None
+    if source is not None:
+        people, fmt, associated, kp_report = _read_keypoints(source, request, rig)
+        joints2d, selection = _select_keypoints(people, fmt, associated, kp, rig, names, scale)
+        seen_report = kp_report
     if source is not None and h is not None:  # the tracked views' person chosen without it
-        request_seen = KeypointRequest(files.root, [chosen[i] for i in seen], frames,
-                                       kp["format"], [sources[i] for i in seen])
-        chosen_seen, _, selection, seen_report = _load_keypoints(source, request_seen, kp,
-                                                                 rig.subset(seen), scale)
+        rig_seen, names_seen = rig.subset(seen), [names[i] for i in seen]
+        if source.views_interact:  # its detections of a view depend on the others: again
+            request_seen = KeypointRequest(files.root, [chosen[i] for i in seen], frames,
+                                           kp["format"], [sources[i] for i in seen])
+            people_seen, _, associated, seen_report = _read_keypoints(source, request_seen,
+                                                                      rig_seen)
+            # the tracked views' report; the held-out view's detections came from every view
+            kp_report = {**seen_report, "with_heldout_view": kp_report}
+        else:
+            people_seen = [[frame[i] for i in seen] for frame in people]
+        chosen_seen, selection = _select_keypoints(people_seen, fmt, associated, kp, rig_seen,
+                                                   names_seen, scale)
         joints2d[:, seen] = chosen_seen
-        # the tracked views' report; the held-out view's detections came from every view
-        kp_report = {**seen_report, "with_heldout_view": kp_report}
+    if joints2d is not None:
+        # --- checks: the views' agreement and the units (torchmocap.data.recordings.checks) ---
+        first = min(int(fit_settings["frames"]), len(frames))
+        consistency = view_consistency(joints2d[:first], rig.scaled_images(scale), names,
+                                       scale, list(frames)[:first],
+                                       None if h is None else names[h])
+        check_views(consistency, checks, unit, files.calibration)
     T, C = len(frames), len(chosen)
     images = torch.zeros(T, C, canvas[1], canvas[0], 3, dtype=torch.uint8)
     log.info("loading %d frames x %d views of %dx%d: %.2f GB of images", T, C, *canvas,
@@ -423,7 +501,8 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
         mask_source={"files": "files", "compute": "computed", "detector": "detector"}.get(mode),
         background={c.name: [str(p) for p in c.background] for c in chosen},
         images_bytes=images.numel(),
-        heldout_camera=None if h is None else chosen[h].name)
+        heldout_camera=None if h is None else chosen[h].name,
+        view_consistency=consistency)
     seq = Seq(fps=rate, scenario="recorded", rig=rig.scaled_images(scale).float(),
               view_dropped=torch.zeros(T, C, dtype=torch.bool), images=images,
               joints2d=joints2d, joint_names=[] if fmt is None else list(keypoint_format(fmt)),
@@ -456,6 +535,10 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
         meta.update(keypoint_start(tracked.joints2d, tracked.joint_names, fmt, tracked.rig,
                                    fit_settings, scale))
     elif tracked.silhouettes is not None and tracked.num_cameras >= 2:
+        # --- checks: the views' masks agree (torchmocap.data.recordings.checks) ---
+        meta.view_consistency = mask_consistency(seq.silhouettes[0], seq.rig, names,
+                                                 meta.heldout_camera)
+        check_views(meta.view_consistency, checks)
         meta.update(hull_start(tracked.rig, tracked.silhouettes[0]))
     elif tracked.silhouettes is None:
         meta.subject_fit = {"skipped": "the recording has neither keypoints nor masks (no "

@@ -244,6 +244,7 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
     check_subject_size(motion, smap, "data.clip.unit")
     fps = float(fps_cfg) if fps_cfg is not None else float(sc.fps)
     _check_memory(motion, fps, AUTO_FRAMES if auto_frames else frames, sc)
+    file_frames, file_fps = motion.num_frames, motion.fps
     if abs(motion.fps - fps) > 1e-6:
         motion = motion.resample(fps)
     a = int(round(float(start) * fps))
@@ -251,6 +252,12 @@ def synthesized_sequence(clip: Mapping[str, Any], scenario: str = "studio",
         raise DataConfigError(f"data.clip.start: {start} s is past the clip's end "
                               f"({motion.num_frames / fps:.2f} s)")
     available = motion.num_frames - a
+    if available < min_frames:
+        rate = (f" (the file: {file_frames} at {file_fps:g} fps; data.clip.fps={file_fps:g} "
+                "keeps its rate)" if abs(file_fps - fps) > 1e-6 else "")
+        raise DataConfigError(f"data.clip: the clip has {available} frame(s) after start "
+                              f"{start:g} s at {fps:g} fps{rate}; tracking needs at least "
+                              f"{min_frames}: use a longer clip or an earlier data.clip.start")
     if auto_frames:
         frames = min(AUTO_FRAMES, available)
     if frames is not None and frames > available:

@@ -107,6 +107,9 @@ class KeypointSource(ABC):
 
     #: the name it is registered under (its config file's name)
     name: str = ""
+    #: its detections of a view depend on the other views read with it (a cross-view check):
+    #: with a held-out camera the tracked views are read again without it
+    views_interact: bool = False
 
     def available(self, request: KeypointRequest) -> bool:
         """Whether the recording has this source's keypoints for every requested camera

@@ -484,6 +484,8 @@ class MediaPipeKeypoints(KeypointSource):
         ValueError: a bad setting (named ``data.keypoints.<name>``).
     """
 
+    views_interact = True  # the cross-view check reads every loaded view together
+
     def __init__(self, cache: str | Path = "outputs/keypoint_cache",
                  min_detection_confidence: float = 0.5, margin: float = 0.25,
                  max_disagreement: float = 0.1, min_visibility: float = 0.5,
