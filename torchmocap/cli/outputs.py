@@ -12,7 +12,9 @@ __all__ = ["print_summary", "validate_outputs", "write_outputs"]
 
 
 def write_outputs(out: Path, cfg, seq, runtime, theta, arrays: dict) -> None:
-    """``track.npz`` (``arrays``), ``tracked.bvh`` (the track ``theta (T, D)``) and the plots,
+    """``track.npz`` (``arrays``), ``tracked.bvh`` (the track ``theta (T, D)``), a
+    self-calibrated recording's ``calibration/`` (the refined calibration and its report) and the
+    plots,
     overlays, video and GLB the output settings of ``cfg`` ask for, into ``out``."""
     import numpy as np
     import torch
@@ -20,6 +22,13 @@ def write_outputs(out: Path, cfg, seq, runtime, theta, arrays: dict) -> None:
     from torchmocap.io import MotionClip, write_bvh
 
     sk = runtime.skeleton
+    record = seq.meta.calibration_refinement
+    if record is not None:  # the self-calibrated rig in the recording's format, its report
+        from torchmocap.cameras import rig_from_dict
+        from torchmocap.data.recordings.self_calibration import write_refinement
+
+        write_refinement(out, rig_from_dict(record["rig"]), record, seq.meta.calibration,
+                         record.get("unit"))
     np.savez_compressed(out / "track.npz", **arrays)
     write_bvh(out / "tracked.bvh", MotionClip.from_skeleton(sk.double(), theta.double(),
                                                             fps=seq.fps))

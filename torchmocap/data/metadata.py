@@ -76,6 +76,9 @@ class SequenceMeta:
         view_consistency: each view's agreement with the others on the first frames, the
             subject's triangulated size and the cameras' distances to it
             (:func:`~torchmocap.data.recordings.checks.view_consistency`).
+        calibration_refinement: the self-calibration's record when ``data.calibration.refine``
+            (:func:`~torchmocap.data.recordings.self_calibration.refine_rig`: objective, frames,
+            groups, per-camera report, time offsets, the refined rig at the calibrated sizes).
 
     The subject and the first pose fitted by the source (:mod:`torchmocap.data.subjects`):
         subject_skeleton: the tracking skeleton (:meth:`~torchmocap.skeleton.Skeleton.to_dict`).
@@ -125,6 +128,7 @@ class SequenceMeta:
     background: dict[str, list[str]] | None = None
     images_bytes: int | None = None
     view_consistency: dict[str, Any] | None = None
+    calibration_refinement: dict[str, Any] | None = None
     # the subject fitted by the source
     subject_skeleton: dict[str, Any] | None = None
     initial_poses: list[list[float]] | None = None

@@ -32,7 +32,8 @@ __all__ = ["TrackEvaluation", "evaluate_track", "tracked_keypoint_map"]
 
 #: sequence meta entries reported beside the scores (a recording's hull top, subject scale,
 #: subject fit and its views' agreement)
-META_KEYS = ("hull_top_m", "skeleton_scale", "source", "subject_fit", "view_consistency")
+META_KEYS = ("calibration_refinement", "hull_top_m", "skeleton_scale", "source", "subject_fit",
+             "view_consistency")
 
 
 @dataclass

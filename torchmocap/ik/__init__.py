@@ -23,6 +23,7 @@ from torchmocap.ik.projection import (
     SkeletonProjection,
     project_to_skeleton,
 )
+from torchmocap.ik.rig_fit import fit_rig_to_skeleton
 from torchmocap.ik.sensor_manifold import (
     PAPER_SENSORS,
     ManifoldSolution,
@@ -32,6 +33,7 @@ from torchmocap.ik.sensor_manifold import (
 )
 
 __all__ = [
+    "fit_rig_to_skeleton",
     "HUMAN31_LIMBS",
     "MAX_TREE_LINKS",
     "PAPER_SENSORS",

@@ -25,6 +25,7 @@ all in memory.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import warnings
@@ -62,6 +63,13 @@ from torchmocap.data.recordings.mask_source import (
     recording_masks,
 )
 from torchmocap.data.recordings.person_selection import person_agreement, select_person
+from torchmocap.data.recordings.self_calibration import (
+    calibration_settings,
+    refine_range,
+    refine_rig,
+    shift_detections,
+    warn_overlap,
+)
 from torchmocap.data.sources import data_source
 from torchmocap.data.subjects.recorded import hull_start, keypoint_start, subject_settings
 from torchmocap.io.frames import (
@@ -77,7 +85,7 @@ from torchmocap.io.frames import (
 )
 from torchmocap.io.openpose import keypoint_format
 
-__all__ = ["CROP_TOLERANCE", "load_recording"]
+__all__ = ["CROP_TOLERANCE", "calibrate_recording", "load_recording"]
 
 log = logging.getLogger(__name__)
 
@@ -332,7 +340,8 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
                    mask_cache: str | Path | None = None, subject: Mapping[str, Any] | None = None,
                    heldout_camera: str | int | None = None,
                    fps: float | None = None, unit: str | float | None = None,
-                   checks: str = "refuse", min_views: int = 0, seed: int = 0):
+                   checks: str = "refuse", calibration: Mapping[str, Any] | None = None,
+                   min_views: int = 0, seed: int = 0):
     """A recording folder as a :class:`~torchmocap.data.Sequence` (``scenario="recorded"``).
 
     Args:
@@ -373,6 +382,13 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
             and a subject whose triangulated size is not a person's are
             (:mod:`~torchmocap.data.recordings.checks`; the report is
             ``meta.view_consistency``).
+        calibration: the self-calibration settings
+            (:func:`~torchmocap.data.recordings.self_calibration.calibration_settings`:
+            ``refine`` (default false), ``frames`` (``[start, stop)`` of the recording; null =
+            the first half of the loaded frames), ``groups``, ``objective`` (``bundle`` |
+            ``model``), ``priors``, ``loss``, ...): with ``refine`` the rig is refined from the
+            subject's detections on those frames (every loaded camera) before anything else
+            uses it; ``meta.calibration_refinement`` has the report and the refined rig.
         min_views: tracked views the caller needs (the commands: 2, to triangulate the
             subject); fewer are refused before anything is read.
         seed: unused (loading is deterministic); accepted like every data source's.
@@ -429,6 +445,7 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
     kp = keypoint_settings(keypoints)
     fit_settings = subject_settings(subject)
     settings = check_mask_settings(mask_settings)
+    cal = calibration_settings(calibration)
     opened: dict[str, Any] = {}
     sources = [opened.setdefault(c.name, open_frames(c.frames)) for c in chosen]
     rate, length, fps_source = _check_streams(sources, chosen, fps, stop)
@@ -442,6 +459,7 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
     if fps_source == "default" and len(frames) > 1:
         warnings.warn(f"{files.root}: image folders carry no frame rate; using "
                       f"{DEFAULT_FPS:g} fps (set data.fps)", stacklevel=2)
+    files = _calibration_file(files, cal["file"])
     full = read_calibration(files.calibration, _LazySizes(files.cameras, opened), unit)
     idx = _match_calibration(full, chosen, files.calibration)
     calibrated = full.subset(idx)
@@ -453,6 +471,11 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
     mode = mask_mode(masks, chosen, source is not None, files.root, source)
     joints2d, fmt, selection, kp_report, consistency = None, None, None, None, None
     names = [c.name for c in chosen]
+    refinement = None
+    if cal["refine"]:
+        rig, refinement = _self_calibrate(source, files, chosen, sources, rig, calibrated, kp,
+                                          cal, frames, length, rate, fit_settings, unit,
+                                          None if h is None else chosen[h].name)
     request_seen, seen_report = request, None
     if source is not None:
         people, fmt, associated, kp_report = _read_keypoints(source, request, rig)
@@ -472,6 +495,10 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
         chosen_seen, selection = _select_keypoints(people_seen, fmt, associated, kp, rig_seen,
                                                    names_seen, scale)
         joints2d[:, seen] = chosen_seen
+    if joints2d is not None and refinement is not None and \
+            any(v != 0.0 for v in refinement["time_offsets"]):  # onto the subject's clock
+        joints2d = shift_detections(joints2d, torch.tensor(refinement["time_offsets"]) /
+                                    frames.step)
     if joints2d is not None:
         # --- checks: the views' agreement and the units (torchmocap.data.recordings.checks) ---
         first = min(int(fit_settings["frames"]), len(frames))
@@ -502,7 +529,7 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
         background={c.name: [str(p) for p in c.background] for c in chosen},
         images_bytes=images.numel(),
         heldout_camera=None if h is None else chosen[h].name,
-        view_consistency=consistency)
+        view_consistency=consistency, calibration_refinement=refinement)
     seq = Seq(fps=rate, scenario="recorded", rig=rig.scaled_images(scale).float(),
               view_dropped=torch.zeros(T, C, dtype=torch.bool), images=images,
               joints2d=joints2d, joint_names=[] if fmt is None else list(keypoint_format(fmt)),
@@ -548,6 +575,51 @@ def load_recording(path: str | Path, cameras: Sequence[str | int] | str | int | 
     return seq
 
 
+def _calibration_file(files, file: str | None):
+    """The recording's files with ``data.calibration.file`` (relative to the working directory)
+    in place of its own calibration."""
+    if file is None:
+        return files
+    p = Path(file).expanduser()
+    if not p.exists():
+        raise ValueError(f"data.calibration.file: {p} does not exist (a calibration file, e.g. "
+                         "a run's calibration/Calib_refined.toml, or a folder holding one)")
+    from torchmocap.inputs import note_input
+
+    note_input(p)  # a changed file changes the run's fingerprint
+    return dataclasses.replace(files, calibration=p.resolve())
+
+
+def _self_calibrate(source, files, chosen, sources, rig: CameraRig, calibrated: CameraRig,
+                    kp, cal, frames: range, length: int, rate: float, subject, unit,
+                    heldout: str | None) -> tuple[CameraRig, dict]:
+    """The rig refined from the detections of ``data.calibration.frames`` (every loaded
+    camera), and the refinement's record (the refined rig at the calibrated image sizes
+    under ``rig``, for writing it in the recording's format)."""
+    from torchmocap.cameras import rig_to_dict
+
+    if source is None:
+        raise ValueError("data.calibration.refine: the recording has no keypoints to refine "
+                         "its calibration from (no pose/ or pose-associated/ files); "
+                         "data.keypoints.source=mediapipe computes them from the frames")
+    if len(chosen) < 2:
+        raise ValueError(f"data.calibration.refine: refining a calibration needs at least two "
+                         f"cameras, got {[c.name for c in chosen]} (data.cameras)")
+    span = refine_range(cal, frames, length)
+    warn_overlap(span, frames, heldout)
+    request = KeypointRequest(files.root, chosen, span, kp["format"], sources)
+    people, fmt, associated, _ = _read_keypoints(source, request, rig)
+    det, _ = _select_keypoints(people, fmt, associated, kp, rig, [c.name for c in chosen], 1.0)
+    refined, record = refine_rig(det, rig, list(keypoint_format(fmt)), fmt, cal, rate, span,
+                                 subject)
+    written = CameraRig(refined.K, refined.R, refined.t, calibrated.image_size, refined.dist,
+                        calibrated.names)
+    record["rig"] = rig_to_dict(written)
+    record["unit"] = unit
+    record["calibration"] = str(files.calibration)
+    return refined, record
+
+
 def _computed_masks(seq, tracked, seen: list[int], h: int | None, plates, settings, cache
                     ) -> tuple[torch.Tensor, dict]:
     """Masks of every view of ``seq``: the tracked views' computed from them alone, the
@@ -563,3 +635,46 @@ def _computed_masks(seq, tracked, seen: list[int], h: int | None, plates, settin
         report["heldout_view"] = {k: rep[k] for k in ("mask_fraction", "cache", "preview")
                                   if k in rep}
     return out, report
+
+
+def calibrate_recording(path: str | Path, cameras: Sequence[str | int] | str | int | None = None,
+                        start: int = 0, stop: int | None = None, stride: int = 1,
+                        keypoints: Mapping[str, Any] | None = None,
+                        subject: Mapping[str, Any] | None = None, fps: float | None = None,
+                        unit: str | float | None = None,
+                        calibration: Mapping[str, Any] | None = None, **_: Any
+                        ) -> tuple[CameraRig, dict]:
+    """Refine a recording's calibration from the subject's detections, without loading its
+    images (``torchmocap-calibrate``): the settings of :func:`load_recording` (``data.*``; the
+    image, mask and check settings are accepted and unused), ``calibration.refine`` implied.
+
+    Returns:
+        ``(rig, record)``: the refined rig at the decoded image sizes and the refinement's
+        record (``record["rig"]``: the refined rig at the calibrated sizes, what
+        :func:`~torchmocap.data.recordings.self_calibration.write_refinement` writes).
+
+    Raises:
+        the errors of :func:`load_recording` for these settings.
+    """
+    files = discover_recording(path)
+    chosen = _choose_cameras(files.cameras, cameras)
+    kp = keypoint_settings(keypoints)
+    fit_settings = subject_settings(subject)
+    cal = calibration_settings({**dict(calibration or {}), "refine": True})
+    opened: dict[str, Any] = {}
+    sources = [opened.setdefault(c.name, open_frames(c.frames)) for c in chosen]
+    rate, length, _ = _check_streams(sources, chosen, fps, stop)
+    try:
+        frames = check_frame_range(length, start, stop, stride, 1.0, "the recording")
+    except ValueError as e:
+        raise ValueError(f"data.{e}") from None
+    files = _calibration_file(files, cal["file"])
+    full = read_calibration(files.calibration, _LazySizes(files.cameras, opened), unit)
+    idx = _match_calibration(full, chosen, files.calibration)
+    calibrated = full.subset(idx)
+    rig = _check_sizes(calibrated, sources, chosen, files.calibration)
+    span = refine_range(cal, frames, length)
+    request = KeypointRequest(files.root, chosen, span, kp["format"], sources)
+    source = choose_keypoint_source(kp, request)
+    return _self_calibrate(source, files, chosen, sources, rig, calibrated, kp, cal, frames,
+                           length, rate, fit_settings, unit, None)
