@@ -108,3 +108,14 @@ def test_a_frame_without_silhouettes_is_refused(anny_data):
                       silhouette_iterations=0)
     with pytest.raises(ValueError, match="silhouettes"):
         fit(sk.zero_pose(), _Frame(None))
+
+
+def test_a_skeleton_without_the_bodys_joints_is_refused():
+    from torchmocap.cameras import make_ring_rig
+    from torchmocap.skeleton import upper_body
+
+    sk = upper_body()
+    if {"l_hip", "l_knee", "l_ankle"} <= set(sk.joint_names):
+        pytest.skip("upper_body has the leg joints")
+    with pytest.raises(ValueError, match="human31"):
+        AnnyBodyFit(CapsuleBody(sk), make_ring_rig(4))

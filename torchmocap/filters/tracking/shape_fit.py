@@ -139,15 +139,30 @@ class AnnyBodyFit(BodyFit):
                                  f", got {v!r}")
         if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
             raise ValueError(f"stride: expected an int >= 1, got {stride!r}")
-        from torchmocap.body import ParametricBody
-
-        sk = body.skeleton
-        self.parametric = ParametricBody(sk, cache_dir=cache_dir).to(sk.offsets.device)
+        missing = sorted({"pelvis", "spine", "neck", "l_hip", "l_knee", "l_ankle", "l_shoulder",
+                          "l_elbow"} - set(body.skeleton.joint_names))
+        if missing:
+            raise ValueError(f"body: the Anny body fit needs a human31 skeleton; joints {missing}"
+                             " are missing")
+        self.cache_dir = cache_dir
+        self._parametric: nn.Module | None = None
         self.rig = rig
         self.joint_iterations, self.silhouette_iterations = joint_iterations, \
             silhouette_iterations
         self.lr, self.prior, self.stride, self.tau = float(lr), float(prior), stride, float(tau)
         self.phenotype: torch.Tensor | None = None
+
+    @property
+    def parametric(self) -> nn.Module:
+        """The Anny body driven by the tracking skeleton, read from the cache at the first use
+        (building the tracker needs neither the cache nor ``anny``)."""
+        if self._parametric is None:
+            from torchmocap.body import ParametricBody
+
+            sk = self.body.skeleton
+            self._parametric = ParametricBody(sk, cache_dir=self.cache_dir).to(
+                sk.offsets.device)
+        return self._parametric
 
     # ------------------------------------------------------------------ the fitted body
     def fitted_mesh(self) -> tuple[nn.Module, torch.Tensor] | None:
