@@ -35,7 +35,7 @@ def _has(a, color):
 def test_defaults_keep_the_run_cheap():
     cfg = _compose([])
     assert cfg.overlays == 3 and cfg.video.enabled is False and cfg.glb.enabled is True
-    assert cfg.video.format == "mp4" and cfg.glb.body == "skinned" and cfg.glb.up == "y"
+    assert cfg.video.format == "mp4" and cfg.glb.body == "auto" and cfg.glb.up == "y"
 
 
 @pytest.mark.parametrize("fmt", ["mp4", "gif"])

@@ -34,7 +34,7 @@ from torch import Tensor, nn
 
 from torchmocap.body.capsules import CapsuleBody, capsule_endpoints, segment_distance
 
-__all__ = ["CapsuleFit", "assign_to_capsules", "fit_capsules", "vertex_areas"]
+__all__ = ["CapsuleFit", "assign_to_capsules", "capsule_radii", "fit_capsules", "vertex_areas"]
 
 
 @dataclass
@@ -239,6 +239,19 @@ def fit_capsules(skeleton: nn.Module, vertices: Tensor, theta: Tensor | None = N
                                      if bool(fit_off[b])} or None).to(dev)
     body.end_shrink.copy_(shrink.detach().to(body.end_shrink))
     return CapsuleFit(body, radii, local, assign, rms, counts, fitted)
+
+
+def capsule_radii(vertices: Tensor, areas: Tensor, fit: CapsuleFit, axes: Tensor,
+                  min_coverage: float = 0.4) -> Tensor:
+    """The radii ``(B,)`` of a fit's capsules for other vertices ``(V, 3)`` of the same mesh
+    (e.g. another phenotype of one body), with the fit's assignment, unshrunk ``axes (B, 2, 3)``
+    (its axis offsets applied) and ends kept: the area-weighted (``areas (V,)``) mean distance
+    of each capsule's skin to its axis, differentiable w.r.t. the vertices; capsules the fit left
+    at their default keep the fit's radius."""
+    radii, _, _ = _fit_radii(vertices, areas, fit.assignment, axes,
+                             fit.body.end_shrink.to(vertices.dtype), fit.radii.detach(),
+                             min_coverage, 0.99)
+    return torch.where(fit.fitted, radii, fit.radii.detach().to(radii))
 
 
 def _fit_radii(vertices: Tensor, w: Tensor, assign: Tensor, full: Tensor, shrink: Tensor,

@@ -106,6 +106,7 @@ def finish(cfg, out: Path, seq, runtime, tracker, track, fingerprint: str,
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     metrics.update(extra or {})
     metrics.update(scores.metrics)
-    write_outputs(out, cfg, seq, runtime, track.theta, scores.arrays)
+    fitted = None if tracker.body_fit is None else tracker.body_fit.fitted_mesh()
+    write_outputs(out, cfg, seq, runtime, track.theta, scores.arrays, fitted_mesh=fitted)
     write_json_atomic(metrics, out / "metrics.json")
     return metrics

@@ -8,14 +8,19 @@ import json
 import math
 from pathlib import Path
 
-__all__ = ["print_summary", "validate_outputs", "write_outputs"]
+__all__ = ["GLB_BODIES", "print_summary", "validate_outputs", "write_outputs"]
+
+#: ``glb.body``: the fitted surface body when the tracker fitted one, else the bundled mesh
+#: (``auto``); the fitted body (``fitted``); the bundled CC0 mesh; a stick figure
+GLB_BODIES = ("auto", "fitted", "skinned", "stick")
 
 
-def write_outputs(out: Path, cfg, seq, runtime, theta, arrays: dict) -> None:
+def write_outputs(out: Path, cfg, seq, runtime, theta, arrays: dict, fitted_mesh=None) -> None:
     """``track.npz`` (``arrays``), ``tracked.bvh`` (the track ``theta (T, D)``), a
-    self-calibrated recording's ``calibration/`` (the refined calibration and its report) and the
-    plots,
-    overlays, video and GLB the output settings of ``cfg`` ask for, into ``out``."""
+    self-calibrated recording's ``calibration/`` (the refined calibration and its report) and
+    the plots, overlays, video and GLB the output settings of ``cfg`` ask for, into ``out``;
+    ``fitted_mesh``: the body fit's ``(body, phenotype)``
+    (:meth:`~torchmocap.filters.BodyFit.fitted_mesh`) for ``glb.body: auto``/``fitted``."""
     import numpy as np
     import torch
 
@@ -34,7 +39,7 @@ def write_outputs(out: Path, cfg, seq, runtime, theta, arrays: dict) -> None:
                                                             fps=seq.fps))
     sk.float()
     with torch.no_grad():
-        _write_plots(out, seq, runtime, theta, arrays, cfg)
+        _write_plots(out, seq, runtime, theta, arrays, cfg, fitted_mesh)
 
 
 def validate_outputs(cfg) -> None:
@@ -61,13 +66,14 @@ def validate_outputs(cfg) -> None:
     number("video.max_fps", video.get("max_fps"), none=True)
     number("video.scale", video.get("scale", 1.0))
     glb = cfg.get("glb") or {}
-    if glb.get("body", "skinned") not in ("skinned", "stick"):
-        raise ValueError(f"glb.body: expected 'skinned' or 'stick', got {glb.get('body')!r}")
+    if glb.get("body", "auto") not in GLB_BODIES:
+        raise ValueError(f"glb.body: expected one of {list(GLB_BODIES)}, got "
+                         f"{glb.get('body')!r}")
     if glb.get("up", "y") not in ("y", "z"):
         raise ValueError(f"glb.up: expected 'y' or 'z', got {glb.get('up')!r}")
 
 
-def _write_plots(out, seq, runtime, theta, arrays, cfg):
+def _write_plots(out, seq, runtime, theta, arrays, cfg, fitted_mesh=None):
     """``errors.png``, the overlay grids, the video and the GLB (each file atomically)."""
     import matplotlib
 
@@ -98,7 +104,7 @@ def _write_plots(out, seq, runtime, theta, arrays, cfg):
     _write_overlays(out, seq, runtime, theta, cfg)
     glb = cfg.get("glb") or {}
     if glb.get("enabled", False):
-        _write_glb(out / "track.glb", seq, runtime, theta, glb)
+        _write_glb(out / "track.glb", seq, runtime, theta, glb, fitted_mesh)
 
 
 def _write_overlays(out, seq, runtime, theta, cfg) -> None:
@@ -143,18 +149,28 @@ def _write_overlays(out, seq, runtime, theta, cfg) -> None:
                                          len(range(0, T, step)), fps / step)
 
 
-def _write_glb(path, seq, runtime, theta, glb) -> None:
-    """``track.glb``: the bundled skinned body (``glb.body: skinned``) or a stick figure
-    (``stick``) following the estimate, keyframes at the sequence's frame times."""
+def _write_glb(path, seq, runtime, theta, glb, fitted_mesh=None) -> None:
+    """``track.glb`` following the estimate, keyframes at the sequence's frame times: the body
+    fit's Anny mesh (``glb.body: fitted``; ``auto`` when the tracker fitted one), the bundled
+    skinned body (``skinned``; ``auto`` otherwise) or a stick figure (``stick``)."""
+    import logging
+
     from torchmocap.export import write_glb
 
-    mesh = None
-    if glb.get("body", "skinned") == "skinned":
+    kind = glb.get("body", "auto")
+    mesh = phenotype = None
+    if kind in ("auto", "fitted") and fitted_mesh is not None:
+        mesh, phenotype = fitted_mesh
+    elif kind == "fitted":
+        logging.getLogger(__name__).warning(
+            "glb.body: fitted, but the tracker fitted no surface body (tracker.body_fit with "
+            "a mesh, e.g. body_fit=anny): writing the bundled skinned body")
+    if mesh is None and kind != "stick":
         from torchmocap.body import SkinnedBody
 
         mesh = SkinnedBody()
     write_glb(path, runtime.skeleton, theta, float(seq.fps), body_mesh=mesh,
-              up=str(glb.get("up", "y")))
+              up=str(glb.get("up", "y")), phenotype=phenotype)
 
 
 def _recording_rows(m: dict) -> list[tuple[str, str]]:

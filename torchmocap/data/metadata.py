@@ -49,7 +49,9 @@ class SequenceMeta:
     A synthesised sequence (:func:`~torchmocap.data.synthetic.synthesize`):
         seed: the synthesis seed.
         scenario: the scenario's settings (:meth:`~torchmocap.data.synthetic.Scenario.to_dict`).
-        body: the rendered body (``skinned`` or ``capsules``).
+        body: the rendered body (``skinned``, ``capsules`` or ``anny``).
+        phenotype: the Anny body's phenotype (all six parameters; ``body: anny``).
+        body_height: the Anny body's standing height (m, its skeleton's rest pose).
         subject: the subject fit's summary (skeleton family, residual, mapped bones).
         timings: seconds per synthesis stage.
         joints2d_occluded_fraction: fraction of 2D joints hidden by the body.
@@ -103,6 +105,8 @@ class SequenceMeta:
     seed: int | None = None
     scenario: dict[str, Any] | None = None
     body: str | None = None
+    phenotype: dict[str, float] | None = None
+    body_height: float | None = None
     subject: dict[str, Any] | None = None
     timings: dict[str, float] | None = None
     joints2d_occluded_fraction: float | None = None

@@ -103,6 +103,11 @@ def _body_fit_summary(first) -> dict[str, Any]:
     if isinstance(fits[-1].get("offsets"), dict):  # capsules moved off their bones (m)
         out["offsets"] = {str(k): [_number(x) for x in v]
                           for k, v in fits[-1]["offsets"].items()}
+    for k in ("phenotype", "phenotype_joints", "girths"):  # the Anny shape fitted
+        if isinstance(fits[-1].get(k), dict):
+            out[k] = {str(n): _number(v) for n, v in fits[-1][k].items()}
+    if fits[-1].get("height") is not None:  # its standing height (m)
+        out["height"] = _number(fits[-1]["height"])
     if isinstance(fits[-1].get("hull"), dict):  # the masks the fit saw (hull-filtered)
         out["hull"] = {str(k): (_number(v) if isinstance(v, float) else v)
                        for k, v in fits[-1]["hull"].items()}

@@ -32,8 +32,8 @@ __all__ = ["TrackEvaluation", "evaluate_track", "tracked_keypoint_map"]
 
 #: sequence meta entries reported beside the scores (a recording's hull top, subject scale,
 #: subject fit and its views' agreement)
-META_KEYS = ("calibration_refinement", "hull_top_m", "skeleton_scale", "source", "subject_fit",
-             "view_consistency")
+META_KEYS = ("body_height", "calibration_refinement", "hull_top_m", "phenotype", "skeleton_scale",
+             "source", "subject_fit", "view_consistency")
 
 
 @dataclass
@@ -176,6 +176,9 @@ def evaluate_track(seq, runtime, tracker, track, energy_vs_truth: bool = False,
     for k in META_KEYS:
         if (v := getattr(seq.meta, k)) is not None:
             metrics[k] = v
+    fit = metrics.get("body_fit") or {}
+    if fit.get("height") is not None and seq.meta.body_height is not None:
+        fit["height_error_m"] = round(fit["height"] - seq.meta.body_height, 5)
     return TrackEvaluation(metrics=metrics, arrays=arrays)
 
 

@@ -36,7 +36,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchmocap.export.skins import MeshSkin, skin_from_body, stick_figure_skin
+from torchmocap.export.skins import (
+    MeshSkin,
+    skin_from_body,
+    skin_from_parametric,
+    stick_figure_skin,
+)
 
 __all__ = [
     "Z_UP_TO_Y_UP",
@@ -287,7 +292,7 @@ def read_accessor(doc: dict, blob: bytes, index: int) -> np.ndarray:
 
 
 def write_glb(path: str | Path, skeleton: Any, thetas: Any, fps: float,
-              body_mesh: Any = None, up: str = "y") -> Path:
+              body_mesh: Any = None, up: str = "y", phenotype: Any = None) -> Path:
     """Write an animated GLB of ``skeleton`` following ``thetas``, atomically.
 
     Args:
@@ -295,8 +300,10 @@ def write_glb(path: str | Path, skeleton: Any, thetas: Any, fps: float,
         skeleton: the track's :class:`~torchmocap.skeleton.Skeleton`.
         thetas: poses ``(T, D)``.
         fps: frame rate of the track (keyframe times ``t / fps``).
-        body_mesh: a :class:`~torchmocap.body.SkinnedBody` to skin to the skeleton, or None
-            for a stick figure. A body that cannot be bound to this skeleton (joints the body
+        body_mesh: a :class:`~torchmocap.body.SkinnedBody` or an Anny
+            :class:`~torchmocap.body.ParametricBody` (of ``phenotype``, driven by the
+            skeleton's offsets: e.g. a body fit's) to skin to the skeleton, or None for a stick
+            figure. A body that cannot be bound to this skeleton (joints the body
             needs are missing) falls back to the stick figure, with a warning in the log.
         up: ``"y"`` (glTF's convention, default) or ``"z"``.
 
@@ -314,7 +321,11 @@ def write_glb(path: str | Path, skeleton: Any, thetas: Any, fps: float,
     skin = None
     if body_mesh is not None:
         try:
-            skin = skin_from_body(body_mesh, skeleton)
+            from torchmocap.body import ParametricBody
+
+            skin = (skin_from_parametric(body_mesh, skeleton, phenotype)
+                    if isinstance(body_mesh, ParametricBody) else
+                    skin_from_body(body_mesh, skeleton))
         except ValueError as e:
             log.warning("glb: the body mesh cannot be bound to skeleton %r (%s); writing an "
                         "animated stick figure instead", getattr(skeleton, "name", "?"), e)

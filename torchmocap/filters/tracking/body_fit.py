@@ -99,6 +99,12 @@ class BodyFit(nn.Module, Stateful):
         return {k: v.detach().clone() for k, v in self.body.state_dict().items()
                 if k in self.STATE}
 
+    def fitted_mesh(self) -> tuple[nn.Module, torch.Tensor] | None:
+        """The fitted surface body for the outputs (``track.glb``): ``(body, phenotype)`` of a
+        fit that has one (:class:`~torchmocap.filters.AnnyBodyFit`), else None (capsules
+        only)."""
+        return None
+
     def load_checkpoint_state(self, state: dict[str, torch.Tensor]) -> None:
         for k, v in state.items():
             getattr(self.body, k).copy_(v)
