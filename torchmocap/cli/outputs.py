@@ -189,6 +189,13 @@ def _recording_rows(m: dict) -> list[tuple[str, str]]:
     rows = [("tracker", m["tracker"]), ("frames", m["frames"]),
             _search_row(m),
             ("seconds / frame", f"{m['seconds_per_frame']:.3f}")]
+    r = m.get("calibration_refinement")
+    if r:  # the self-calibration: each camera's residual before -> after
+        cams = r["report"]["cameras"]
+        rows.append((f"calibration refined ({r['objective']}, frames {r['frames'][0]}-"
+                     f"{r['frames'][1] - 1})", ", ".join(
+                         f"{c['name']} {c['residual_median_px_before']:.1f}->"
+                         f"{c['residual_median_px_after']:.1f} px" for c in cams)))
     h = m.get("heldout")
     if h:
         rows += [(f"held-out {h['camera']}", px(h)),
