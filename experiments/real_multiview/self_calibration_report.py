@@ -28,12 +28,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
-
-import torch
 
 HERE = Path(__file__).resolve().parent
 if str(HERE) not in sys.path:
@@ -171,7 +168,7 @@ def markdown(result: dict) -> str:
                   "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
         order = sorted(r["methods"].items(), key=lambda kv: (
             not kv[0].startswith("torchmocap"), kv[0].split("/")[0], kv[1]["calibration"]))
-        for key, m in order:
+        for _, m in order:
             s = m["summary"]
             cams = [s["per_camera"].get(c) for c in ("cam01", "cam02", "cam03", "cam04")]
             pck = None if s["pck_05"] is None else 100 * s["pck_05"]
@@ -203,8 +200,9 @@ def plot(result: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, len(result["splits"]), figsize=(12, 4.5), sharey=True)
-    for ax, (split, r) in zip(axes, result["splits"].items()):
+    fig, axes = plt.subplots(1, len(result["splits"]), figsize=(12, 4.5), sharey=True,
+                             squeeze=False)
+    for ax, (split, r) in zip(axes[0], result["splits"].items()):
         names = sorted({k.split("/")[0] for k in r["methods"]})
         x = range(len(names))
         for i, calib in enumerate(CALIBS):
