@@ -202,7 +202,7 @@ def plot(result: dict, path: Path) -> None:
 
     fig, axes = plt.subplots(1, len(result["splits"]), figsize=(12, 4.5), sharey=True,
                              squeeze=False)
-    for ax, (split, r) in zip(axes[0], result["splits"].items()):
+    for ax, r in zip(axes[0], result["splits"].values()):
         names = sorted({k.split("/")[0] for k in r["methods"]})
         x = range(len(names))
         for i, calib in enumerate(CALIBS):
