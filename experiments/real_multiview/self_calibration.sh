@@ -3,13 +3,32 @@
 # frames a split did not refine on, each camera held out in turn, with the recording's own
 # calibration and with the one refined from the subject on the other frames (every camera).
 #   split a: refine on 0-59, track and score 60-99;  split b: refine on 40-99, track 0-39.
-# Usage: experiments/real_multiview/self_calibration.sh [SPLIT [CALIB [PRESET ...]]]
+# Usage: experiments/real_multiview/self_calibration.sh [SPLIT [CALIB [PRESET ...]]] | learned
 # (from the repository root; runs into experiments/real_multiview/runs_selfcal/<split>/<calib>/
 # <preset>/<cam>; a finished run is skipped when nothing changed).
 set -euo pipefail
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
 REC=${REC:-../shared/data/multiview/pose2sim_balancing}
 OUT=${OUT:-experiments/real_multiview/runs_selfcal}
+# The learned keypoint term on the refined calibration (split a): per held-out camera a training
+# on frames 0-59 of the other three cameras (the refinement saw all four on 0-59), then
+# real_local with the learned term on 60-99:  experiments/real_multiview/self_calibration.sh learned
+if [ "${1:-}" = learned ]; then
+  for cam in cam01 cam02 cam03 cam04; do
+    train="$OUT/a/refined/train/$cam"
+    [ -f "$train/keypoints.pt" ] || torchmocap-train --config-name train_keypoints \
+      data.path="$REC" evaluation.heldout_camera=$cam data.calibration.refine=true \
+      'data.calibration.frames=[0,60]' progress=false hydra.run.dir="$train"
+    torchmocap-track data=recording data.path="$REC" data.start=60 data.stop=100 \
+      data.calibration.refine=true 'data.calibration.frames=[0,60]' tracker=real_local \
+      term@tracker.likelihood.terms.keypoints=keypoints_learned \
+      tracker.likelihood.terms.keypoints.weights="$train/keypoints.pt" \
+      evaluation.heldout_camera=$cam threads=1 overlays=0 glb.enabled=false progress=false \
+      hydra.run.dir="$OUT/a/refined/real_local_learned/$cam" \
+      || echo "failed: learned $cam" >&2
+  done
+  exit 0
+fi
 splits=${1:-"a b"}
 calibs=${2:-"given refined"}
 shift $(( $# > 2 ? 2 : $# )) || true
