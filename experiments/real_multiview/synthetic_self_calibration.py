@@ -46,8 +46,7 @@ RESULTS = HERE / "results"
 OFFSETS = (0.0, 0.3, -0.5, 1.2)
 SIZE = (640, 480)
 #: the stated tolerances of the rig's recovery
-TOLERANCE = {"rotation_deg": 0.5, "centre_mm": 30.0, "focal_percent": 1.5,
-             "time_offset_frames": 0.15}
+TOLERANCE = {"rotation_deg": 0.5, "time_offset_frames": 0.15, "pixels": 1.0}
 
 
 def subject(frames: int):
@@ -165,21 +164,36 @@ def mpjpe_mm(est: torch.Tensor, truth: torch.Tensor) -> tuple[float, float]:
     return raw, float((aligned - b).norm(dim=-1).mean()) * 1000
 
 
-def rig_errors(est, truth, est_offsets, true_offsets) -> dict:
+def rig_errors(est, truth, est_offsets, true_offsets, X: torch.Tensor) -> dict:
+    """Errors of ``est`` after the similarity ``x -> s Q x + b`` of the world that best maps
+    the true camera centres onto the estimated ones (Umeyama; a rig refined from the subject
+    alone cannot see the world's similarity): rotation °, centre mm (in the truth's scale),
+    focal %, time offset relative to the cameras' mean, and ``pixels``: the median distance
+    between the two rigs' projections of the subject's keypoints ``X (C, T, K, 3)`` (the true
+    points in the true rig, the mapped points in ``est``) — what the detections determine."""
+    from torchmocap.cameras import refinement_pixels
     from torchmocap.geometry import geodesic_angle
 
     est, truth = est.double(), truth.double()
-    U, _, Vh = torch.linalg.svd((truth.R.transpose(-1, -2) @ est.R).mean(0))
-    Q = U @ Vh
-    ce, ct = est.camera_centers() @ Q.T, truth.camera_centers()
-    a, b = ce - ce.mean(0), ct - ct.mean(0)
-    s = (a * b).sum() / (a * a).sum()
+    ce, ct = est.camera_centers(), truth.camera_centers()
+    me, mt = ce.mean(0), ct.mean(0)
+    a, b = ct - mt, ce - me
+    U, S, Vh = torch.linalg.svd(b.T @ a)
+    D = torch.eye(3, dtype=torch.float64)
+    D[2, 2] = torch.sign(torch.det(U @ Vh))
+    Q = U @ D @ Vh  # true world -> estimated world
+    s = float((S * D.diagonal()).sum() / (a * a).sum())
+    mapped_centres = (ce - me) @ Q / s + mt  # estimated centres in the true world
     do = torch.tensor(est_offsets, dtype=torch.float64)
     dt = torch.tensor(true_offsets, dtype=torch.float64)
-    return {"rotation_deg": torch.rad2deg(geodesic_angle(est.R @ Q.T, truth.R)).tolist(),
-            "centre_mm": (1000 * (s * a + ct.mean(0) - ct).norm(dim=-1)).tolist(),
+    Xe = s * X @ Q.T + (me - s * mt @ Q.T)
+    uv_t = refinement_pixels(X, truth.K, truth.R, truth.t, truth.dist, per_camera=True)
+    uv_e = refinement_pixels(Xe, est.K, est.R, est.t, est.dist, per_camera=True)
+    return {"rotation_deg": torch.rad2deg(geodesic_angle(est.R @ Q, truth.R)).tolist(),
+            "centre_mm": (1000 * (mapped_centres - ct).norm(dim=-1)).tolist(),
             "focal_percent": (100 * (est.K[:, 0, 0] / truth.K[:, 0, 0] - 1)).tolist(),
-            "time_offset_frames": ((do - do.mean()) - (dt - dt.mean())).tolist()}
+            "time_offset_frames": ((do - do.mean()) - (dt - dt.mean())).tolist(),
+            "pixels": float((uv_e - uv_t).norm(dim=-1).median()), "scale": s}
 
 
 def run_seed(seed: int, frames: int, work: Path, log=print) -> dict:
@@ -207,8 +221,9 @@ def run_seed(seed: int, frames: int, work: Path, log=print) -> dict:
         if refine:
             rec = m["calibration_refinement"]
             est = read_calibration(root / "run" / "calibration" / "Calib_refined.toml")
-            row["rig_errors"] = rig_errors(est, rig, rec["time_offsets"], OFFSETS)
-            row["perturbed_rig_errors"] = rig_errors(bad, rig, [0.0] * 4, OFFSETS)
+            row["rig_errors"] = rig_errors(est, rig, rec["time_offsets"], OFFSETS, X)
+            row["perturbed_rig_errors"] = rig_errors(bad, rig, [0.0] * 4, OFFSETS, X)
+            row["poorly_determined"] = rec["report"]["poorly_determined"]
             row["refinement_seconds"] = rec["seconds"]
             row["time_offsets"] = rec["time_offsets"]
         rows[name] = row
@@ -230,19 +245,30 @@ def markdown(result: dict) -> str:
         for name, r in rows.items():
             lines.append(f"| {seed} | {name} | {r['mpjpe_mm']:.1f} | "
                          f"{r['mpjpe_aligned_mm']:.1f} | {r['seconds_per_frame']:.3f} |")
-    lines += ["", "Rig errors after the similarity onto the truth (max over cameras; time "
-              "offsets relative to the cameras' mean), perturbed → refined, tolerance:", "",
-              "| seed | rotation ° | centre mm | focal % | time offset frames | within "
-              "tolerance |", "|---:|---|---|---|---|---|"]
+    lines += ["", "Rig errors after the similarity of the world that best maps the true camera "
+              "centres onto the refined ones (max over cameras; time offsets relative to the "
+              "cameras' mean; pixels: the median distance between the two rigs' projections of "
+              "the subject's keypoints), perturbed → refined, and the stated tolerance (focal "
+              "and centre are reported, not toleranced: see below):", "",
+              "| seed | rotation ° | time offset frames | pixels | centre mm | focal % | within "
+              "tolerance | not determined (the report's flags) |",
+              "|---:|---|---|---|---|---|---|---|"]
     for seed, rows in result["seeds"].items():
         r = rows["perturbed, refined"]
         cells, ok = [], True
-        for k in ("rotation_deg", "centre_mm", "focal_percent", "time_offset_frames"):
-            before = max(abs(v) for v in r["perturbed_rig_errors"][k])
-            after = max(abs(v) for v in r["rig_errors"][k])
-            ok &= after <= TOLERANCE[k]
-            cells.append(f"{before:.2f} → **{after:.2f}** (≤ {TOLERANCE[k]:g})")
-        lines.append(f"| {seed} | " + " | ".join(cells) + f" | {'yes' if ok else 'no'} |")
+        for k in ("rotation_deg", "time_offset_frames", "pixels", "centre_mm",
+                  "focal_percent"):
+            pv, rv = r["perturbed_rig_errors"][k], r["rig_errors"][k]
+            before = max(abs(v) for v in pv) if isinstance(pv, list) else pv
+            after = max(abs(v) for v in rv) if isinstance(rv, list) else rv
+            if k in TOLERANCE:
+                ok &= after <= TOLERANCE[k]
+                cells.append(f"{before:.2f} → **{after:.2f}** (≤ {TOLERANCE[k]:g})")
+            else:
+                cells.append(f"{before:.1f} → {after:.1f}")
+        flags = ", ".join(r.get("poorly_determined") or []) or "–"
+        lines.append(f"| {seed} | " + " | ".join(cells) + f" | {'yes' if ok else 'no'} | "
+                     f"{flags} |")
     lines += ["", "Refined offsets (frames): " + "; ".join(
         f"seed {s}: {', '.join(f'{v:+.2f}' for v in rows['perturbed, refined']['time_offsets'])}"
         for s, rows in result["seeds"].items()) + f" (true {', '.join(f'{v:+g}' for v in OFFSETS)};"
