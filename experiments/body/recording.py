@@ -25,6 +25,7 @@ It writes ``results/recording_masks_<run>.md``.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import math
 import os
@@ -102,6 +103,10 @@ def masks(run: Path, every: int) -> str:
     faces = pb.faces
     names = list(rig.names)
     C = rig.num_cameras
+    # the hull's rig: every view at the padded size (views of different sizes share one padded
+    # image tensor; the padding is background)
+    padded = copy.deepcopy(rig)
+    padded.image_size[:] = torch.tensor([seq.silhouettes.shape[-1], seq.silhouettes.shape[-2]])
     per = {n: {k: [] for k in ("mesh", "hull", "mesh_hull", "fg_outside", "mesh_missed")}
            for n in names}
     for t in range(0, T, every):
@@ -116,7 +121,7 @@ def masks(run: Path, every: int) -> str:
             mask = sil[c, :H, :W]
             mesh = rasterize_mask(pix[c:c + 1], depth[c:c + 1], faces, W, H)[0]
             others = [o for o in range(C) if o != c]
-            hull = visual_hull(rig.subset(others), sil[others], bounds, 0.02)
+            hull = visual_hull(padded.subset(others), sil[others], bounds, 0.02)
             pts = hull.centers().double()
             r = 1
             if pts.shape[0]:
@@ -148,7 +153,7 @@ def masks(run: Path, every: int) -> str:
 def _write(name: str, title: str, text: str) -> None:
     from torchmocap.atomic import write_text_atomic
 
-    write_text_atomic(f"# {title}\n\n{text}\n", OUT / name)
+    write_text_atomic(OUT / name, f"# {title}\n\n{text}\n")
 
 
 def main(argv=None) -> int:
