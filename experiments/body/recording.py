@@ -45,7 +45,8 @@ def _row(name: str, m: dict) -> str:
     fit = m.get("body_fit") or {}
     sil = (m.get("silhouette_iou") or {}).get("mean")
     phen = fit.get("phenotype")
-    return (f"| {name} | {h.get('camera')} | {m.get('body')} | {m.get('weight')} | "
+    return (f"| {name} | {h.get('camera')} | {m.get('body')} | {m.get('term')} | "
+            f"{m.get('weight')} | "
             f"{h.get('silhouette_iou', math.nan):.3f} | {h.get('median_px', math.nan):.1f} | "
             f"{h.get('mean_px', math.nan):.1f} | {h.get('pck_05', math.nan):.3f} | "
             f"{sil if sil is None else round(sil, 3)} | "
@@ -55,13 +56,15 @@ def _row(name: str, m: dict) -> str:
 
 
 def table(runs: Path) -> str:
-    rows = ["| run | held-out | body | silhouette weight | held-out IoU | held-out median px | "
-            "mean px | PCK@5% | tracked views' IoU | fit IoU before | after | fitted height m "
-            "| s / frame |", "|" + "---|" * 13]
+    rows = ["| run | held-out | body | silhouette term | weight | held-out IoU | held-out "
+            "median px | mean px | PCK@5% | tracked views' IoU | fit IoU before | after | "
+            "fitted height m "
+            "| s / frame |", "|" + "---|" * 14]
     for d in sorted(p for p in runs.iterdir() if (p / "metrics.json").is_file()):
         m = json.loads((d / "metrics.json").read_text())
         m["body"] = "Anny fitted" if m.get("body_fit") else "capsules"
         m["weight"] = 0 if "_w0" in d.name else 100
+        m["term"] = "surface points" if "_surf" in d.name else "capsules"
         rows.append(_row(d.name, m))
     return "\n".join(rows)
 
