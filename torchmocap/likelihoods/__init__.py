@@ -54,6 +54,11 @@ from torchmocap.likelihoods.silhouette import (
     soft_capsule_silhouettes,
 )
 from torchmocap.likelihoods.silhouette_noise import SilhouetteNoiseLikelihood, fit_noise_model
+from torchmocap.likelihoods.surface import (
+    SurfaceSilhouetteLikelihood,
+    surface_samples,
+    surface_silhouette_energy,
+)
 
 __all__ = [
     "AppearanceLikelihood",
@@ -77,6 +82,7 @@ __all__ = [
     "SilhouetteLikelihood",
     "SilhouetteNoiseLikelihood",
     "SilhouetteObservation",
+    "SurfaceSilhouetteLikelihood",
     "WeightedSum",
     "WeightsError",
     "appearance_energy",
@@ -97,4 +103,6 @@ __all__ = [
     "silhouette_iou",
     "soft_capsule_silhouettes",
     "soft_render_capsules",
+    "surface_samples",
+    "surface_silhouette_energy",
 ]

@@ -181,6 +181,7 @@ class AnnyBodyFit(BodyFit):
         phen = state.pop("phenotype", None)
         super().load_checkpoint_state(state)
         self.phenotype = None if phen is None else phen.clone()
+        self.body.surface_phenotype = self.phenotype
 
     # ------------------------------------------------------------------ the fit
     def forward(self, theta: torch.Tensor, frame) -> dict:
@@ -275,6 +276,8 @@ class AnnyBodyFit(BodyFit):
                 getattr(caps, k).copy_(v)
         check_fit_iou(iou1 if kept else iou0, "body_fit")
         self.phenotype = phen.detach().clone()
+        # the surface term (SurfaceSilhouetteLikelihood) poses this phenotype
+        caps.surface_phenotype = self.phenotype
         with torch.no_grad():
             rest = sk.zero_pose(dtype=dt, device=dev)
             vr = pb(rest, phen, offsets=off).vertices
