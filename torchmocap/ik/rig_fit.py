@@ -39,18 +39,10 @@ from torchmocap.cameras import (
     RobustLoss,
     reprojection_residuals,
 )
+from torchmocap.cameras.bundle_adjustment import _median_per_camera
 from torchmocap.skeleton import KeypointMap, Skeleton, keypoint_positions
 
 __all__ = ["fit_rig_to_skeleton"]
-
-
-def _median_per_camera(r: Tensor, used: Tensor) -> Tensor:
-    d = r.norm(dim=-1)
-    out = []
-    for c in range(d.shape[1]):
-        x = d[:, c][used[:, c]]
-        out.append(x.median() if x.numel() else torch.tensor(math.nan, dtype=d.dtype))
-    return torch.stack(out)
 
 
 def fit_rig_to_skeleton(detections: Tensor, rig: CameraRig, skeleton: Skeleton,
