@@ -93,6 +93,14 @@ class KeypointLikelihood(Likelihood):
             :meth:`prepare`) or ``"uninformative"`` (a constant, non-zero energy).
         learn_offsets: make the keypoint offsets trainable.
         learn_scale: make the per-camera log-scales trainable.
+        surface_keypoints: once a body fit has set the subject's Anny phenotype on ``body``
+            (:class:`~torchmocap.filters.AnnyBodyFit`), place the keypoints a detector marks on
+            the skin (nose, eyes, ears, head top, heels, toe tips) on the fitted body's surface
+            (:mod:`torchmocap.body.surface_keypoints`); the others, and every keypoint before
+            the fit, keep the map's offsets.
+        body: the runtime :class:`~torchmocap.body.CapsuleBody` (read by
+            ``surface_keypoints`` only).
+        cache_dir: the Anny cache folder (``surface_keypoints``).
 
     Raises:
         KeypointMapError: a mapped keypoint is not among ``keypoint_names`` (names it), or the
@@ -106,8 +114,19 @@ class KeypointLikelihood(Likelihood):
                  keypoint_map: str | Path | KeypointMap = "body_25b",
                  scale_px: float | Sequence[float] = 8.0, robust: str = "cauchy",
                  min_confidence: float = 0.0, reduction: str = "sum", on_empty: str = "raise",
-                 learn_offsets: bool = False, learn_scale: bool = False) -> None:
+                 learn_offsets: bool = False, learn_scale: bool = False,
+                 surface_keypoints: bool = False, body=None, cache_dir: str | None = None
+                 ) -> None:
         super().__init__()
+        if not isinstance(surface_keypoints, bool):
+            raise ValueError(f"surface_keypoints: expected true or false, got "
+                             f"{surface_keypoints!r}")
+        if surface_keypoints and learn_offsets:
+            raise ValueError("surface_keypoints: the offsets come from the fitted body; they "
+                             "cannot also be learned (learn_offsets=true)")
+        if surface_keypoints and body is None:
+            raise ValueError("surface_keypoints: needs the runtime body (the tracker's "
+                             "CapsuleBody, fitted by body_fit=anny)")
         check_detection_settings(type(self).__name__, rig, robust, reduction, on_empty,
                                  min_confidence)
         scales = _check_scales(scale_px, rig.num_cameras)
@@ -124,6 +143,13 @@ class KeypointLikelihood(Likelihood):
         self.offsets = nn.Parameter(self.kmap.offsets.float(), requires_grad=bool(learn_offsets))
         self.log_scale_px = nn.Parameter(torch.tensor(scales).log(),
                                          requires_grad=bool(learn_scale))
+        self.surface_keypoints = surface_keypoints
+        self.body = body if surface_keypoints else None
+        self.cache_dir = cache_dir
+        self._parametric = None
+        self._surface_phenotype = None  # the phenotype the offsets were read off
+        #: the keypoints placed on the fitted body's surface (empty before a body fit)
+        self.surface_placed: list[str] = []
 
     @property
     def scale_px(self) -> torch.Tensor:
@@ -171,14 +197,36 @@ class KeypointLikelihood(Likelihood):
         return not observation.empty
 
     # ------------------------------------------------------------------ energy
+    def _sync_surface(self) -> None:
+        """Read the offsets of the surface keypoints off the body's fitted phenotype (once per
+        fit)."""
+        phen = getattr(self.body, "surface_phenotype", None)
+        if phen is None or phen is self._surface_phenotype:
+            return
+        from torchmocap.body import ParametricBody
+        from torchmocap.body.surface_keypoints import surface_keypoint_offsets
+
+        sk = self.body.skeleton
+        if self._parametric is None:
+            self._parametric = ParametricBody(sk, cache_dir=self.cache_dir).to(
+                sk.offsets.device)
+        off, placed = surface_keypoint_offsets(self.kmap, self._parametric, phen, sk.offsets)
+        with torch.no_grad():
+            self.offsets.copy_(off.to(self.offsets))
+        self._surface_phenotype, self.surface_placed = phen, placed
+
     def keypoints(self, poses: Poses) -> torch.Tensor:
         """``(P, K', 3)`` world positions of the mapped keypoints of ``poses``."""
+        if self.surface_keypoints:
+            self._sync_surface()
         kin = poses.kinematics
         return keypoint_positions(kin.positions, kin.rotations, self.kmap, self.offsets)
 
     def fitted_map(self) -> KeypointMap:
         """The keypoint map with this term's current offsets (the model points it scores:
         a held-out view is scored with the same points)."""
+        if self.surface_keypoints:
+            self._sync_surface()
         return dataclasses.replace(self.kmap, offsets=self.offsets.detach().to(
             device="cpu", dtype=torch.float64).clone())
 
