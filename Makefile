@@ -1,9 +1,9 @@
 # Two commands from a fresh clone:
 #
 #   make demo    # track the bundled CMU walk (torchmocap-track; ARGS="..." adds overrides)
-#   make test    # the test suite (python -m pytest -q -n auto --maxprocesses 4: pytest-xdist,
-#                # one worker per core up to 4; TEST_WORKERS=0 runs it in one process;
-#                # PYTEST_ARGS="..." adds options)
+#   make test    # the test suite (OMP_NUM_THREADS=1 python -m pytest -q -n auto --maxprocesses 4:
+#                # pytest-xdist, one single-threaded worker per core up to 4; TEST_WORKERS=0
+#                # runs it in one process; PYTEST_ARGS="..." adds options)
 #
 # Both first prepare $(VENV): create it with $(PYTHON) -m venv when missing, install the pinned
 # CPU torch, then the project with its dev extras (pip install -e ".[dev]"; they include the
@@ -36,7 +36,8 @@ demo: prepare
 	$(VENV)/bin/torchmocap-track $(ARGS)
 
 test: prepare
-	@rc=0; $(PY) -m pytest -q -n $(TEST_WORKERS) --maxprocesses 4 $(if $(CI),--durations=25) \
+	@rc=0; OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 \
+	  $(PY) -m pytest -q -n $(TEST_WORKERS) --maxprocesses 4 $(if $(CI),--durations=25) \
 	  $(PYTEST_ARGS) || rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "make test: no tests collected (a failure)"; exit 1; fi; \
 	exit $$rc
