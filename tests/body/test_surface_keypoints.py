@@ -79,14 +79,35 @@ def test_feature_offsets_follow_the_skinned_surface(anny_body):
     pose = anny_body(theta, phen, offsets=sk.offsets.double())
     pts = surface_points(anny_body, pose.vertices)
     x = keypoint_positions(pose.kinematics.positions, pose.kinematics.rotations, km, off)
+    head = [k for k, n in enumerate(km.names) if n in placed and km.joints[k] == "head"]
     for k, name in enumerate(km.names):
-        if name in placed:
+        if name in placed and k not in head:
             assert float((x[k] - pts[KEYPOINT_POINTS[name]]).norm()) < 0.015, name
+    # the head's points are one translation away from the skin (the eye-height convention):
+    # their differences follow the skinned surface
+    skin = torch.stack([pts[KEYPOINT_POINTS[km.names[k]]] for k in head])
+    shift = (x[head] - skin).mean(0)
+    assert float((x[head] - skin - shift).norm(dim=-1).max()) < 0.015
+    assert 0.01 < float(shift.norm()) < 0.06
     # the keypoints without a surface point keep the map's offsets
     keep = [k for k, n in enumerate(km.names) if n not in placed]
     torch.testing.assert_close(off[keep], km.offsets[keep].double())
     sm = surface_keypoint_map(km, anny_body, phen, sk.offsets)
     torch.testing.assert_close(sm.offsets, off)
+
+
+@pytest.mark.parametrize("phen", PHENOTYPES)
+def test_feature_eyes_at_the_head_joints_height(anny_body, phen):
+    """human31's convention (the maps' and the subject fit's): the head joint at eye height;
+    the face keeps its shape (nose below the eyes, ears behind them)."""
+    sk = anny_body.skeleton
+    km = load_keypoint_map("body_25b", sk)
+    off, _ = surface_keypoint_offsets(km, anny_body, anny_body.phenotype_tensor(phen).double(),
+                                      sk.offsets)
+    o = {n: off[k] for k, n in enumerate(km.names)}
+    assert abs(float(o["LEye"][2] + o["REye"][2])) < 1e-9
+    assert float(o["Nose"][2]) < -0.01 and float(o["Nose"][1]) < float(o["LEye"][1])
+    assert float(o["LEar"][1]) > float(o["LEye"][1]) + 0.04
 
 
 def test_feature_the_term_reads_the_fitted_phenotype(anny_body):
@@ -113,12 +134,9 @@ def test_feature_the_term_reads_the_fitted_phenotype(anny_body):
     assert term.surface_placed == []
     phen = anny_body.phenotype_tensor({"age": 0.3, "height": 0.8}).double()
     body.surface_phenotype = phen
-    pose = anny_body(theta[0], phen, offsets=sk.offsets.double())
-    truth = surface_points(anny_body, pose.vertices)
-    x = plain.keypoints(poses)[0].double().clone()
-    for k, name in enumerate(km.names):
-        if name in KEYPOINT_POINTS:
-            x[k] = truth[KEYPOINT_POINTS[name]]
+    off, _ = surface_keypoint_offsets(km, anny_body, phen, sk.offsets)
+    kin = sk(theta.double())
+    x = keypoint_positions(kin.positions, kin.rotations, km, off)[0]
     pix = rig.project(x)[0]
     j2d = torch.zeros(4, len(term.keypoint_names), 3, dtype=torch.float64)
     j2d[:, term.columns, :2] = pix

@@ -27,7 +27,11 @@ built-in formats (BODY_25, BODY_25B, COCO-17, HALPE-26, MediaPipe 33).
 :func:`surface_keypoint_offsets` turns the points of a fitted body (phenotype, tracking
 skeleton) into offsets of a map: at the skeleton's rest pose, the point minus the keypoint's
 joint in the keypoint's bone frame. The keypoint then rides rigidly on that bone, as every map
-keypoint does (the head and foot vertices are skinned to one bone almost entirely).
+keypoint does (the head and foot vertices are skinned to one bone almost entirely). One
+convention is reconciled: human31's head joint sits at eye height (the keypoint maps and the
+subject fit from keypoints place it there), the body's head joint at the skull's base (MakeHuman's
+head bone), about 3 cm lower on human31; the points carried by the head joint are lowered along
+the head's axis by the eyes' height above it, so that the eyes sit at the head joint's height.
 """
 
 from __future__ import annotations
@@ -165,13 +169,25 @@ def surface_keypoint_offsets(kmap, body, phenotype: Tensor, offsets: Tensor
         pts = surface_points(body, pose.vertices)
         pos, rot = pose.kinematics.positions, pose.kinematics.rotations
     out = kmap.offsets.detach().to(dtype=dt, device="cpu").clone()
+    names = list(sk.joint_names)
+    # human31's head joint is at eye height (the skeleton's convention, and so the subject
+    # fit's); the body's head joint is the skull's base: lower the head's points along the
+    # head's axis by the eyes' height above it
+    h = names.index("head") if "head" in names else None
+    lift = torch.zeros(3, dtype=dt, device=dev)
+    if h is not None:
+        eyes = 0.5 * (pts["l_eye"] + pts["r_eye"])
+        lift[2] = (rot[h].transpose(-1, -2) @ (eyes - pos[h]))[2]
     placed = []
     for k, name in enumerate(kmap.names):
         point = KEYPOINT_POINTS.get(name)
         if point is None:
             continue
         j, f = int(kmap.joint_index[k]), int(kmap.frame_index[k])
-        out[k] = (rot[f].transpose(-1, -2) @ (pts[point] - pos[j])).cpu()
+        o = rot[f].transpose(-1, -2) @ (pts[point] - pos[j])
+        if j == h:
+            o = o - rot[f].transpose(-1, -2) @ (rot[h] @ lift)
+        out[k] = o.cpu()
         placed.append(name)
     return out, placed
 
