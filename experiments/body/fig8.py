@@ -28,6 +28,8 @@ import argparse
 import json
 from pathlib import Path
 
+from torchmocap.atomic import atomic_path, write_text_atomic
+
 HERE = Path(__file__).resolve().parent
 CLIPS = ("walking", "jumping", "kicking", "basketball", "dancing", "arm_rotation")
 TRACKERS = (("default", "capsules"), ("default_anny", "fitted Anny body"))
@@ -157,10 +159,9 @@ def plot(rows: dict, path: Path) -> None:
     fig.suptitle("Fig. 8 outdoor, LS: capsules vs fitted Anny body (synthesis seeds "
                  f"{', '.join(map(str, seeds))})", fontsize=10)
     fig.tight_layout()
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=110)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
-    tmp.replace(path)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -174,9 +175,7 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"no runs under {args.runs}")
     args.out.mkdir(parents=True, exist_ok=True)
     text = report(rows)
-    tmp = args.out / "fig8.md.tmp"
-    tmp.write_text(text)
-    tmp.replace(args.out / "fig8.md")
+    write_text_atomic(args.out / "fig8.md", text)
     plot(rows, args.out / "fig8.png")
     print(text)
     return 0

@@ -28,6 +28,8 @@ from protocol import KEYPOINTS, MIN_CONFIDENCE, load_detections  # noqa: E402
 from report import track_keypoints  # noqa: E402
 from self_calibration_report import RECORDING, RESULTS, RUNS, SPLITS, refined_rig  # noqa: E402
 
+from torchmocap.atomic import write_text_atomic  # noqa: E402
+
 HEAD = ("Nose", "LEye", "REye", "LEar", "REar", "Neck")
 EARS = ("LEar", "REar")
 
@@ -90,10 +92,7 @@ def main() -> int:
              "|---|---|---|---|---|---|---|---|"]
     for split in SPLITS:
         lines += rows_of(split)
-    path = RESULTS / "self_calibration_keypoints.md"
-    tmp = path.with_suffix(".md.tmp")
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(path)
+    write_text_atomic(RESULTS / "self_calibration_keypoints.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
 
