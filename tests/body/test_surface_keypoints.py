@@ -172,3 +172,24 @@ def test_exception_bad_settings(anny_body):
                                  anny_body.skeleton.offsets)
     with pytest.raises(ValueError, match="phenotype: expected shape"):
         surface_keypoint_offsets(km, anny_body, torch.zeros(3), anny_body.skeleton.offsets)
+
+
+def test_feature_map_anchor_keeps_each_groups_place(anny_body):
+    """anchor='map': each joint's group of surface keypoints keeps the map's mean offset and
+    the surface's shape; a keypoint alone on its joint keeps the map's offset."""
+    sk = anny_body.skeleton
+    km = load_keypoint_map("body_25b", sk)
+    phen = anny_body.phenotype_tensor({"age": 0.3}).double()
+    joint, placed = surface_keypoint_offsets(km, anny_body, phen, sk.offsets)
+    mapped, _ = surface_keypoint_offsets(km, anny_body, phen, sk.offsets, anchor="map")
+    given = km.offsets.double()
+    face = [km.names.index(n) for n in ("Nose", "LEye", "REye", "LEar", "REar")]
+    torch.testing.assert_close(mapped[face].mean(0), given[face].mean(0))
+    torch.testing.assert_close(mapped[face] - mapped[face].mean(0),
+                               joint[face] - joint[face].mean(0))
+    for alone in ("Head", "LHeel", "RHeel"):
+        k = km.names.index(alone)
+        torch.testing.assert_close(mapped[k], given[k])
+    assert float((mapped[face] - given[face]).norm(dim=-1).max()) > 0.005  # the shape moved
+    with pytest.raises(ValueError, match="anchor: expected"):
+        surface_keypoint_offsets(km, anny_body, phen, sk.offsets, anchor="middle")

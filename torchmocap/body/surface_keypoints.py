@@ -137,8 +137,8 @@ def surface_points(body, vertices: Tensor) -> dict[str, Tensor]:
     return {k: vertices[..., idx.to(vertices.device), :].mean(-2) for k, idx in sets.items()}
 
 
-def surface_keypoint_offsets(kmap, body, phenotype: Tensor, offsets: Tensor
-                             ) -> tuple[Tensor, list[str]]:
+def surface_keypoint_offsets(kmap, body, phenotype: Tensor, offsets: Tensor,
+                             anchor: str = "joint") -> tuple[Tensor, list[str]]:
     """Offsets of ``kmap`` with its surface keypoints read off a fitted body.
 
     Args:
@@ -146,6 +146,10 @@ def surface_keypoint_offsets(kmap, body, phenotype: Tensor, offsets: Tensor
         body: the :class:`~torchmocap.body.ParametricBody` driven by the tracking skeleton.
         phenotype: ``(6,)`` the fitted phenotype.
         offsets: ``(J, 3)`` the tracking skeleton's offsets (the subject's bone lengths).
+        anchor: ``"joint"``: the points where the body puts them relative to the joints;
+            ``"map"``: the surface gives each group of keypoints on one joint (the face on the
+            head, the toes on the toe joint) its shape, the map its place — the group's mean
+            offset stays the map's (a keypoint alone on its joint keeps the map's offset).
 
     Returns:
         ``(K', 3)`` float64 offsets (the map's own for keypoints without a surface point) and
@@ -160,6 +164,8 @@ def surface_keypoint_offsets(kmap, body, phenotype: Tensor, offsets: Tensor
                          f"body's skeleton has {list(sk.joint_names)[:4]}...")
     if phenotype.shape != (6,):
         raise ValueError(f"phenotype: expected shape (6,), got {tuple(phenotype.shape)}")
+    if anchor not in ("joint", "map"):
+        raise ValueError(f"anchor: expected 'joint' or 'map', got {anchor!r}")
     dt = torch.float64
     dev = body.device
     with torch.no_grad():
@@ -189,10 +195,20 @@ def surface_keypoint_offsets(kmap, body, phenotype: Tensor, offsets: Tensor
             o = o - rot[f].transpose(-1, -2) @ (rot[h] @ lift)
         out[k] = o.cpu()
         placed.append(name)
+    if anchor == "map":
+        given = kmap.offsets.detach().to(dtype=dt, device="cpu")
+        groups: dict[tuple[int, int], list[int]] = {}
+        for k, name in enumerate(kmap.names):
+            if name in placed:
+                groups.setdefault((int(kmap.joint_index[k]), int(kmap.frame_index[k])),
+                                  []).append(k)
+        for ks in groups.values():
+            out[ks] += given[ks].mean(0) - out[ks].mean(0)
     return out, placed
 
 
-def surface_keypoint_map(kmap, body, phenotype: Tensor, offsets: Tensor):
+def surface_keypoint_map(kmap, body, phenotype: Tensor, offsets: Tensor,
+                         anchor: str = "joint"):
     """``kmap`` with the offsets of :func:`surface_keypoint_offsets` (a new map)."""
-    off, _ = surface_keypoint_offsets(kmap, body, phenotype, offsets)
+    off, _ = surface_keypoint_offsets(kmap, body, phenotype, offsets, anchor)
     return dataclasses.replace(kmap, offsets=off, origin=f"{kmap.origin} (surface keypoints)")

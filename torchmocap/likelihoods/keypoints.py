@@ -98,6 +98,9 @@ class KeypointLikelihood(Likelihood):
             the skin (nose, eyes, ears, head top, heels, toe tips) on the fitted body's surface
             (:mod:`torchmocap.body.surface_keypoints`); the others, and every keypoint before
             the fit, keep the map's offsets.
+        surface_anchor: ``"joint"`` (the points where the body puts them) or ``"map"`` (the
+            surface shapes each group of keypoints on one joint, the map places it):
+            :func:`~torchmocap.body.surface_keypoints.surface_keypoint_offsets`.
         body: the runtime :class:`~torchmocap.body.CapsuleBody` (read by
             ``surface_keypoints`` only).
         cache_dir: the Anny cache folder (``surface_keypoints``).
@@ -115,8 +118,8 @@ class KeypointLikelihood(Likelihood):
                  scale_px: float | Sequence[float] = 8.0, robust: str = "cauchy",
                  min_confidence: float = 0.0, reduction: str = "sum", on_empty: str = "raise",
                  learn_offsets: bool = False, learn_scale: bool = False,
-                 surface_keypoints: bool = False, body=None, cache_dir: str | None = None
-                 ) -> None:
+                 surface_keypoints: bool = False, surface_anchor: str = "joint", body=None,
+                 cache_dir: str | None = None) -> None:
         super().__init__()
         if not isinstance(surface_keypoints, bool):
             raise ValueError(f"surface_keypoints: expected true or false, got "
@@ -124,6 +127,9 @@ class KeypointLikelihood(Likelihood):
         if surface_keypoints and learn_offsets:
             raise ValueError("surface_keypoints: the offsets come from the fitted body; they "
                              "cannot also be learned (learn_offsets=true)")
+        if surface_anchor not in ("joint", "map"):
+            raise ValueError(f"surface_anchor: expected 'joint' or 'map', got "
+                             f"{surface_anchor!r}")
         if surface_keypoints and body is None:
             raise ValueError("surface_keypoints: needs the runtime body (the tracker's "
                              "CapsuleBody, fitted by body_fit=anny)")
@@ -144,6 +150,7 @@ class KeypointLikelihood(Likelihood):
         self.log_scale_px = nn.Parameter(torch.tensor(scales).log(),
                                          requires_grad=bool(learn_scale))
         self.surface_keypoints = surface_keypoints
+        self.surface_anchor = surface_anchor
         self.body = body if surface_keypoints else None
         self.cache_dir = cache_dir
         self._parametric = None
@@ -210,7 +217,8 @@ class KeypointLikelihood(Likelihood):
         if self._parametric is None:
             self._parametric = ParametricBody(sk, cache_dir=self.cache_dir).to(
                 sk.offsets.device)
-        off, placed = surface_keypoint_offsets(self.kmap, self._parametric, phen, sk.offsets)
+        off, placed = surface_keypoint_offsets(self.kmap, self._parametric, phen, sk.offsets,
+                                               self.surface_anchor)
         with torch.no_grad():
             self.offsets.copy_(off.to(self.offsets))
         self._surface_phenotype, self.surface_placed = phen, placed
