@@ -14,7 +14,13 @@ repository root::
     python experiments/body/control.py
 
 Writes ``results/control.md`` and ``results/control.png`` (MPJPE per body and clip, both
-bodies).
+bodies). The same table at the clips' own length (up to 75 frames)::
+
+    torchmocap-track -m +experiment=body/control data=skinned_clean data.clip.frames=75 \\
+        hydra.sweep.dir=experiments/body/runs/control75
+    python experiments/body/control.py --runs experiments/body/runs/control75 --name control75
+
+A table missing some (body, clip) pairs says so in its first lines (partial).
 """
 
 from __future__ import annotations
@@ -46,7 +52,7 @@ def _mean(xs):
     return sum(xs) / len(xs) if xs else float("nan")
 
 
-def report(runs: Path, out: Path) -> str:
+def report(runs: Path, out: Path, stem: str = "control") -> str:
     m = load(runs)
     if not m:
         raise SystemExit(f"no runs under {runs}")
@@ -65,6 +71,11 @@ def report(runs: Path, out: Path) -> str:
         "",
         "| body | clip | MPJPE mm | orientation ° | height err cm | IoU | s/frame | fit s |",
         "|---|---|---|---|---|---|---|---|"]
+    missing = [f"{body}/{clip}" for _, body in BODIES for clip in CLIPS
+               if not all((body, clip, tr) in m for tr, _ in TRACKERS)]
+    if missing:
+        lines[2:2] = [f"**Partial table**: {len(missing)} of {len(BODIES) * len(CLIPS)} "
+                      f"(body, clip) pairs not run ({', '.join(missing)}).", ""]
     rows = {}
     for _, body in BODIES:
         for clip in CLIPS:
@@ -114,8 +125,8 @@ def report(runs: Path, out: Path) -> str:
     out.mkdir(parents=True, exist_ok=True)
     from torchmocap.atomic import write_text_atomic
 
-    write_text_atomic(out / "control.md", text)
-    _plot(rows, out / "control.png")
+    write_text_atomic(out / f"{stem}.md", text)
+    _plot(rows, out / f"{stem}.png")
     return text
 
 
@@ -151,5 +162,6 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=Path, default=HERE / "runs" / "control")
     ap.add_argument("--out", type=Path, default=HERE / "results")
+    ap.add_argument("--name", default="control", help="file stem of the table and plot")
     a = ap.parse_args()
-    print(report(a.runs, a.out))
+    print(report(a.runs, a.out, a.name))
