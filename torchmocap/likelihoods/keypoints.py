@@ -98,8 +98,9 @@ class KeypointLikelihood(Likelihood):
             the skin (nose, eyes, ears, head top, heels, toe tips) on the fitted body's surface
             (:mod:`torchmocap.body.surface_keypoints`); the others, and every keypoint before
             the fit, keep the map's offsets.
-        surface_anchor: ``"joint"`` (the points where the body puts them) or ``"map"`` (the
-            surface shapes each group of keypoints on one joint, the map places it):
+        surface_anchor: ``"map"`` (default: the surface shapes each group of keypoints on one
+            joint, the map places it; measured better on a real recording than ``"joint"``)
+            or ``"joint"`` (the points where the body puts them):
             :func:`~torchmocap.body.surface_keypoints.surface_keypoint_offsets`.
         body: the runtime :class:`~torchmocap.body.CapsuleBody` (read by
             ``surface_keypoints`` only).
@@ -118,7 +119,7 @@ class KeypointLikelihood(Likelihood):
                  scale_px: float | Sequence[float] = 8.0, robust: str = "cauchy",
                  min_confidence: float = 0.0, reduction: str = "sum", on_empty: str = "raise",
                  learn_offsets: bool = False, learn_scale: bool = False,
-                 surface_keypoints: bool = False, surface_anchor: str = "joint", body=None,
+                 surface_keypoints: bool = False, surface_anchor: str = "map", body=None,
                  cache_dir: str | None = None) -> None:
         super().__init__()
         if not isinstance(surface_keypoints, bool):
