@@ -53,6 +53,40 @@ def test_a_known_body_is_fitted_back(anny_data, phenotype):
     assert torch.equal(caps.surface_phenotype, fit.fitted_mesh()[1])
 
 
+def test_the_hull_filter_removes_what_one_view_alone_sees(anny_data):
+    """Two blobs far from the body, one each in views 0 and 1, pull the silhouette fit's
+    weight up (a larger union rewards a larger body); fitted to the hull-filtered masks the
+    phenotype is the one fitted to the clean masks."""
+    seq = _observed("heavy")
+    sk = seq.ground_truth.build_skeleton().float()
+    th = seq.ground_truth.theta[0].float()
+    clean = seq.silhouettes[0]
+    masks = clean.clone()
+    H, W = masks.shape[1:]
+    yy, xx = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    for c in (0, 1):
+        blob = (xx - 40 - 200 * c) ** 2 + (yy - 200) ** 2 < 30 ** 2
+        assert not bool((blob & clean[c]).any())
+        masks[c] |= blob
+
+    def fit(m, **kw):
+        f = AnnyBodyFit(CapsuleBody(sk).float(), seq.rig.float(), joint_iterations=120,
+                        silhouette_iterations=20, **kw)
+        info = f(th, _Frame(m))
+        return f.fitted_mesh()[1], info
+
+    ref, _ = fit(clean)
+    plain, info_plain = fit(masks)
+    filtered, info = fit(masks, hull_filter=True)
+    weight = 3  # PHENOTYPE_NAMES order: gender, age, muscle, weight, height, proportions
+    assert float(plain[weight] - ref[weight]) > 0.1
+    assert torch.allclose(filtered, ref, atol=0.01)
+    assert info["hull"]["applied"] and info["hull"]["foreground_kept"] < 0.7
+    assert "hull" not in info_plain
+    # the reported IoUs are those with the masks as given
+    assert info["iou_before"] == pytest.approx(info_plain["iou_before"])
+
+
 def test_capsule_radii_follow_the_vertices_differentiably():
     sk = human31().double()
     cap = CapsuleBody(sk).double()
@@ -93,7 +127,11 @@ def test_vertex_areas_sum_to_the_surface():
 @pytest.mark.parametrize("kw, key", [({"joint_iterations": -1}, "joint_iterations"),
                                      ({"silhouette_iterations": 1.5}, "silhouette_iterations"),
                                      ({"lr": 0}, "lr"), ({"prior": -1}, "prior"),
-                                     ({"stride": 0}, "stride"), ({"tau": float("nan")}, "tau")])
+                                     ({"stride": 0}, "stride"), ({"tau": float("nan")}, "tau"),
+                                     ({"hull_filter": "yes"}, "hull_filter"),
+                                     ({"hull_voxel": 0}, "hull_voxel"),
+                                     ({"hull_margin": -1}, "hull_margin"),
+                                     ({"hull_tolerance": 0.5}, "hull_tolerance")])
 def test_bad_settings_are_named(anny_data, kw, key):
     sk = human31()
     from torchmocap.cameras import make_ring_rig

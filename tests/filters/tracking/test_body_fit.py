@@ -11,7 +11,7 @@ import torch
 from torchmocap.body import CapsuleBody
 from torchmocap.cameras import make_ring_rig
 from torchmocap.data import Frame
-from torchmocap.filters.tracking.body_fit import SilhouetteBodyFit
+from torchmocap.filters.tracking.body_fit import SilhouetteBodyFit, hull_filtered_masks
 from torchmocap.skeleton import human31
 
 sys.path.insert(0, str(Path(__file__).parents[2] / "likelihoods"))
@@ -304,3 +304,39 @@ def test_implausible_masks_give_a_warning(case):
         warnings.simplefilter("error")
         ok = SilhouetteBodyFit(CapsuleBody(sk).float(), rig, iterations=5, stride=2)
         assert ok(th, Frame(index=0, time=0.0, silhouettes=masks))["iou_after"] > 0.9
+
+
+def test_hull_tolerance_keeps_one_views_hole_its_own():
+    """A hole across the left forearm of view 0 carves the all-views hull, so the filtered masks
+    lose that piece of the forearm in the other views too; with ``tolerance=1`` the other views keep their foreground, view 0
+    keeps its hole (the filter never adds foreground), and a blob only view 1 sees, far from
+    the body, is still removed."""
+    sk, rig, th, truth, clean, wrist = _arm_out_scene()
+    elbow = rig.project(sk(th[None].float()).positions[0, [sk.joint_index("l_elbow")]])[0][:, 0]
+    masks = clean.clone()
+    hole = torch.zeros_like(masks[0])
+    _disc(hole, 0.5 * (wrist[0] + elbow[0]), 8.0)
+    hole &= clean[0]
+    assert int(hole.sum()) > 50
+    masks[0] &= ~hole
+    far = torch.zeros_like(masks[1])
+    _disc(far, torch.tensor([25.0, 210.0]), 14.0)
+    assert not bool((far & clean[1]).any())
+    masks[1] |= far
+    ends = truth.endpoints(sk(th[None].float()))
+    strict, hs = hull_filtered_masks(rig, masks, None, ends, float(truth.radii.max()), 0.3, 0.02)
+    loose, hl = hull_filtered_masks(rig, masks, None, ends, float(truth.radii.max()), 0.3, 0.02,
+                                    tolerance=1)
+    assert hs["applied"] and hl["applied"] and hl["tolerance"] == 1
+    lost = [float((clean[c] & ~strict[c].bool()).sum()) for c in (1, 2, 3)]
+    kept = [float((clean[c] & ~loose[c].bool()).sum()) for c in (1, 2, 3)]
+    assert max(lost) > 30  # the hole of view 0 carved another view's torso
+    assert max(kept) < 0.25 * max(lost)
+    assert not bool((loose.bool() & ~masks).any())  # only removes foreground
+    assert bool((loose[0].bool() & hole).sum() == 0)  # view 0's hole stays
+    assert not bool((loose[1].bool() & far).any())  # the far blob is removed
+    with pytest.raises(ValueError, match="tolerance"):
+        hull_filtered_masks(rig, masks, None, ends, 0.1, 0.3, 0.02, tolerance=-1)
+    one = torch.tensor([True, True, False, False])
+    same, info = hull_filtered_masks(rig, masks, one, ends, 0.1, 0.3, 0.02, tolerance=1)
+    assert not info["applied"] and "needs 3" in info["reason"] and same is masks

@@ -52,8 +52,40 @@ from torchmocap.likelihoods.silhouette import (
 )
 from torchmocap.stateful import Stateful
 
-__all__ = ["BodyFit", "SilhouetteBodyFit"]
+__all__ = ["BodyFit", "SilhouetteBodyFit", "hull_filtered_masks"]
 
+
+
+def hull_filtered_masks(rig, masks: torch.Tensor, valid: torch.Tensor | None, ends: torch.Tensor,
+                        radius: float, margin: float, voxel: float, tolerance: int = 0
+                        ) -> tuple[torch.Tensor, dict[str, Any]]:
+    """The foreground all views agree on: ``masks (C, H, W)`` intersected with the
+    reprojection of their visual hull (:func:`~torchmocap.cameras.visual_hull`), carved from
+    every valid view in the box around the capsule ends ``ends (..., 3)`` padded by ``margin``
+    plus ``radius`` (metres), with voxels of edge ``voxel``; and what was done (``applied``,
+    ``views``, ``foreground_kept``). A voxel is kept when it lies in the masks of all valid
+    views but ``tolerance``: with 0 a hole in one view carves the hull and is lost in every
+    view; with 1 it stays one view's (a false-positive blob survives only where two other
+    views see foreground too). With fewer than ``tolerance + 2`` valid views the masks are
+    returned as given (``applied: False`` and the reason)."""
+    C = masks.shape[0]
+    ok = (torch.ones(C, dtype=torch.bool, device=masks.device) if valid is None
+          else valid.to(masks.device).bool())
+    n = int(ok.sum())
+    if isinstance(tolerance, bool) or not isinstance(tolerance, int) or tolerance < 0:
+        raise ValueError(f"tolerance: expected an int >= 0, got {tolerance!r}")
+    if n < tolerance + 2:
+        return masks, {"applied": False, "reason": f"{n} valid view(s); the hull needs "
+                                                   f"{tolerance + 2}"}
+    pts = ends.detach().reshape(-1, 3).double().cpu()
+    pad = margin + radius
+    bounds = torch.stack([pts.min(0).values - pad, pts.max(0).values + pad], 1)
+    fg = masks > 0
+    hull = visual_hull(rig, fg, bounds, voxel, min_views=n - tolerance)
+    out = fg & hull.silhouettes(rig).to(fg.device)
+    kept = float(out[ok].sum()) / max(float(fg[ok].sum()), 1.0)
+    return out.to(masks.dtype), {"applied": True, "views": n, "tolerance": tolerance,
+                                 "foreground_kept": round(kept, 4)}
 
 def _segment(name: str) -> str:
     for side in ("l_", "r_"):
@@ -387,24 +419,8 @@ class SilhouetteBodyFit(BodyFit):
 
     def _hull_filtered(self, masks: torch.Tensor, valid: torch.Tensor | None,
                        ends: torch.Tensor, radii: torch.Tensor) -> tuple[torch.Tensor, dict]:
-        """``masks (C, H, W)`` intersected with the reprojection of their visual hull, carved
-        from every valid view in the box around the capsules ``ends (1, B, 2, 3)``; and what
-        was done."""
-        C = masks.shape[0]
-        ok = (torch.ones(C, dtype=torch.bool, device=masks.device) if valid is None
-              else valid.to(masks.device))
-        n = int(ok.sum())
-        if n < 2:
-            return masks, {"applied": False, "reason": f"{n} valid view(s); the hull needs 2"}
-        pts = ends.detach().reshape(-1, 3).double().cpu()
-        pad = self.hull_margin + float(radii.max())
-        bounds = torch.stack([pts.min(0).values - pad, pts.max(0).values + pad], 1)
-        fg = masks > 0
-        hull = visual_hull(self.rig, fg, bounds, self.hull_voxel, min_views=n)
-        out = fg & hull.silhouettes(self.rig).to(fg.device)
-        kept = float(out[ok].sum()) / max(float(fg[ok].sum()), 1.0)
-        return out.to(masks.dtype), {"applied": True, "views": n,
-                                     "foreground_kept": round(kept, 4)}
+        return hull_filtered_masks(self.rig, masks, valid, ends, float(radii.max()),
+                                   self.hull_margin, self.hull_voxel)
 
     def extra_repr(self) -> str:
         out = (f"iterations={self.iterations}, scale=[{self.min_scale}, {self.max_scale}], "

@@ -37,7 +37,7 @@ from torch import nn
 from torchmocap.body.capsule_fit import capsule_radii, fit_capsules, vertex_areas
 from torchmocap.body.capsules import capsule_endpoints
 from torchmocap.body.phenotype_fit import fit_phenotype
-from torchmocap.filters.tracking.body_fit import BodyFit
+from torchmocap.filters.tracking.body_fit import BodyFit, hull_filtered_masks
 from torchmocap.likelihoods.silhouette import (
     check_fit_iou,
     render_capsule_silhouettes,
@@ -120,13 +120,20 @@ class AnnyBodyFit(BodyFit):
         prior: pull of the silhouette fit's logits towards the joint fit's (weight and muscle
             free), per squared logit, against the soft IoU.
         stride, tau: the soft silhouettes' pixel stride and softness (pixels).
+        hull_filter: fit the silhouettes to the foreground the views agree on
+            (:func:`~torchmocap.filters.tracking.body_fit.hull_filtered_masks`: the masks
+            intersected with the reprojection of their visual hull, carved around the body at
+            the first pose); ``hull_voxel``, ``hull_margin`` (metres) and ``hull_tolerance``
+            (views a hull voxel may miss) as there. The reported IoUs stay those with the
+            masks as given; ``hull`` says what was done.
         refit_passes, refit_scale: the coarse-to-fine passes of :meth:`BodyFit.start`.
     """
 
     def __init__(self, body, rig, cache_dir: str | None = None, joint_iterations: int = 200,
                  silhouette_iterations: int = 30, lr: float = 0.1, prior: float = 0.01,
-                 stride: int = 2, tau: float = 0.3, refit_passes: int = 0,
-                 refit_scale: float = 0.25) -> None:
+                 stride: int = 2, tau: float = 0.3, hull_filter: bool = False,
+                 hull_voxel: float = 0.02, hull_margin: float = 0.3, hull_tolerance: int = 0,
+                 refit_passes: int = 0, refit_scale: float = 0.25) -> None:
         super().__init__(body, refit_passes, refit_scale)
         for name, v in (("joint_iterations", joint_iterations),
                         ("silhouette_iterations", silhouette_iterations)):
@@ -139,6 +146,19 @@ class AnnyBodyFit(BodyFit):
                                  f", got {v!r}")
         if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
             raise ValueError(f"stride: expected an int >= 1, got {stride!r}")
+        if not isinstance(hull_filter, bool):
+            raise ValueError(f"hull_filter: expected a bool, got {hull_filter!r}")
+        for name, v, pos in (("hull_voxel", hull_voxel, True), ("hull_margin", hull_margin,
+                                                                  False)):
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
+                    or v < 0 or (pos and v == 0):
+                raise ValueError(f"{name}: expected a finite number {'> 0' if pos else '>= 0'}"
+                                 f", got {v!r}")
+        if isinstance(hull_tolerance, bool) or not isinstance(hull_tolerance, int) or \
+                hull_tolerance < 0:
+            raise ValueError(f"hull_tolerance: expected an int >= 0, got {hull_tolerance!r}")
+        self.hull_filter, self.hull_tolerance = hull_filter, hull_tolerance
+        self.hull_voxel, self.hull_margin = float(hull_voxel), float(hull_margin)
         missing = sorted({"pelvis", "spine", "neck", "l_hip", "l_knee", "l_ankle", "l_shoulder",
                           "l_elbow"} - set(body.skeleton.joint_names))
         if missing:
@@ -219,6 +239,7 @@ class AnnyBodyFit(BodyFit):
         fit0 = fit_capsules(sk, v0, theta, labels=labels, faces=faces)
         z_j = torch.logit(phen_j.clamp(1e-3, 1 - 1e-3))
         z = z_j.clone().requires_grad_(self.silhouette_iterations > 0)
+        hull_info = None
         t1 = time.perf_counter()
         if self.silhouette_iterations > 0:
             with torch.no_grad():
@@ -231,7 +252,12 @@ class AnnyBodyFit(BodyFit):
                     fit0.body.end_shrink.to(dt), kin.rotations, fit0.axis_offsets)
             w_area = vertex_areas(v0, faces)
             st = self.stride
-            target = frame.silhouettes[:, ::st, ::st].to(dev, dt)
+            masks = frame.silhouettes
+            if self.hull_filter:
+                masks, hull_info = hull_filtered_masks(
+                    rig, masks, valid, ends, float(fit0.radii.max()), self.hull_margin,
+                    self.hull_voxel, self.hull_tolerance)
+            target = masks[:, ::st, ::st].to(dev, dt)
             vw = torch.ones(target.shape[0], dtype=dt, device=dev) if valid is None else \
                 valid.to(dt)
             free = torch.tensor([n in ("weight", "muscle") for n in PHENOTYPE_NAMES],
@@ -283,6 +309,7 @@ class AnnyBodyFit(BodyFit):
             vr = pb(rest, phen, offsets=off).vertices
             jr = sk(rest[None], check_finite=False).positions[0]
         height = float(vr[:, 2].max() - vr[:, 2].min())
+        extra = {} if hull_info is None else {"hull": hull_info}
         return {
             "phenotype": {n: round(float(x), 4) for n, x in zip(PHENOTYPE_NAMES, phen)},
             "phenotype_joints": {n: round(float(x), 4) for n, x in zip(PHENOTYPE_NAMES, phen_j)},
@@ -291,7 +318,7 @@ class AnnyBodyFit(BodyFit):
             "iou_before": iou0, "iou_after": iou1 if kept else iou0, "kept": kept,
             "joint_rmse": round(jfit.joint_rmse, 5),
             "radii_scale": round(float((caps.radii / r_before.clamp_min(1e-9)).mean()), 4),
-            "joints_s": round(t_joints, 3), "silhouettes_s": round(t_sil, 3)}
+            "joints_s": round(t_joints, 3), "silhouettes_s": round(t_sil, 3), **extra}
 
     def _iou(self, theta: torch.Tensor, masks: torch.Tensor, valid) -> float:
         with torch.no_grad():
@@ -301,5 +328,8 @@ class AnnyBodyFit(BodyFit):
         return float(v[keep].mean()) if bool(keep.any()) else float("nan")
 
     def extra_repr(self) -> str:
-        return (f"joint_iterations={self.joint_iterations}, "
-                f"silhouette_iterations={self.silhouette_iterations}, stride={self.stride}")
+        out = (f"joint_iterations={self.joint_iterations}, "
+               f"silhouette_iterations={self.silhouette_iterations}, stride={self.stride}")
+        if self.hull_filter:
+            out += f", hull_filter=True, hull_tolerance={self.hull_tolerance}"
+        return out
