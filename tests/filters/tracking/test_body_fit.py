@@ -324,8 +324,8 @@ def test_hull_tolerance_keeps_one_views_hole_its_own():
     assert not bool((far & clean[1]).any())
     masks[1] |= far
     ends = truth.endpoints(sk(th[None].float()))
-    strict, hs = hull_filtered_masks(rig, masks, None, ends, float(truth.radii.max()), 0.3, 0.02)
-    loose, hl = hull_filtered_masks(rig, masks, None, ends, float(truth.radii.max()), 0.3, 0.02,
+    strict, hs = hull_filtered_masks(rig, masks, None, ends, truth.radii, 0.3, 0.02)
+    loose, hl = hull_filtered_masks(rig, masks, None, ends, truth.radii, 0.3, 0.02,
                                     tolerance=1)
     assert hs["applied"] and hl["applied"] and hl["tolerance"] == 1
     lost = [float((clean[c] & ~strict[c].bool()).sum()) for c in (1, 2, 3)]
@@ -336,7 +336,33 @@ def test_hull_tolerance_keeps_one_views_hole_its_own():
     assert bool((loose[0].bool() & hole).sum() == 0)  # view 0's hole stays
     assert not bool((loose[1].bool() & far).any())  # the far blob is removed
     with pytest.raises(ValueError, match="tolerance"):
-        hull_filtered_masks(rig, masks, None, ends, 0.1, 0.3, 0.02, tolerance=-1)
+        hull_filtered_masks(rig, masks, None, ends, truth.radii, 0.3, 0.02, tolerance=-1)
     one = torch.tensor([True, True, False, False])
-    same, info = hull_filtered_masks(rig, masks, one, ends, 0.1, 0.3, 0.02, tolerance=1)
+    same, info = hull_filtered_masks(rig, masks, one, ends, truth.radii, 0.3, 0.02, tolerance=1)
     assert not info["applied"] and "needs 3" in info["reason"] and same is masks
+
+
+def test_hull_reach_drops_what_is_consistent_but_off_the_body():
+    """A second body 1.2 m beside the subject is seen by every view — consistent in 3D, so the
+    hull keeps it; with ``reach`` only the voxels near the subject's capsules stay: the second
+    body is gone and the subject's own foreground is kept."""
+    sk, rig, th, truth, clean, _ = _arm_out_scene()
+    other = th.clone()
+    other[0] += 1.2
+    second = capsule_masks(truth, rig, other)
+    assert float((second & ~clean).sum()) > 500
+    masks = clean | second
+    ends = truth.endpoints(sk(th[None].float()))
+    kept, info = hull_filtered_masks(rig, masks, None, ends, truth.radii, 1.5, 0.02)
+    near, info_r = hull_filtered_masks(rig, masks, None, ends, truth.radii, 1.5, 0.02,
+                                       reach=0.08)
+    off = second & ~clean
+    assert float((kept.bool() & off).sum()) > 0.8 * float(off.sum())  # consistent: kept
+    # off the body: gone, but where it borders the subject in a view (within reach)
+    assert float((near.bool() & off).sum()) < 0.1 * float(off.sum())
+    own = float((near.bool() & clean).sum()) / float(clean.sum())
+    assert own > 0.97
+    assert info_r["reach"] == 0.08 and info_r["voxels_off_the_body"] > 0.2
+    assert "reach" not in info
+    with pytest.raises(ValueError, match="reach"):
+        hull_filtered_masks(rig, masks, None, ends, truth.radii, 0.3, 0.02, reach=0.0)

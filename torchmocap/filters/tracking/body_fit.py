@@ -57,35 +57,64 @@ __all__ = ["BodyFit", "SilhouetteBodyFit", "hull_filtered_masks"]
 
 
 def hull_filtered_masks(rig, masks: torch.Tensor, valid: torch.Tensor | None, ends: torch.Tensor,
-                        radius: float, margin: float, voxel: float, tolerance: int = 0
-                        ) -> tuple[torch.Tensor, dict[str, Any]]:
+                        radii: torch.Tensor, margin: float, voxel: float, tolerance: int = 0,
+                        reach: float | None = None) -> tuple[torch.Tensor, dict[str, Any]]:
     """The foreground all views agree on: ``masks (C, H, W)`` intersected with the
     reprojection of their visual hull (:func:`~torchmocap.cameras.visual_hull`), carved from
-    every valid view in the box around the capsule ends ``ends (..., 3)`` padded by ``margin``
-    plus ``radius`` (metres), with voxels of edge ``voxel``; and what was done (``applied``,
-    ``views``, ``foreground_kept``). A voxel is kept when it lies in the masks of all valid
-    views but ``tolerance``: with 0 a hole in one view carves the hull and is lost in every
-    view; with 1 it stays one view's (a false-positive blob survives only where two other
-    views see foreground too). With fewer than ``tolerance + 2`` valid views the masks are
-    returned as given (``applied: False`` and the reason)."""
+    every valid view with voxels of edge ``voxel`` in the box around the capsules ``ends
+    (..., B, 2, 3)`` (radii ``(B,)``) padded by ``margin`` plus the largest radius (metres); and
+    what was done (``applied``, ``views``, ``foreground_kept``).
+
+    A voxel is kept when it lies in the masks of all valid views but ``tolerance``: with 0 a
+    hole in one view carves the hull and is lost in every view; with 1 it stays one view's (a
+    false-positive blob survives only where two other views see foreground too). With
+    ``reach`` (metres) only voxels within that distance of a capsule's surface are kept: what
+    is consistent in 3D but not near the body at the pose — a shadow on the floor, another
+    person, a static object the masks hold — is removed too. With fewer than
+    ``tolerance + 2`` valid views the masks are returned as given (``applied: False`` and the
+    reason)."""
+    if isinstance(tolerance, bool) or not isinstance(tolerance, int) or tolerance < 0:
+        raise ValueError(f"tolerance: expected an int >= 0, got {tolerance!r}")
+    if reach is not None and (isinstance(reach, bool) or not isinstance(reach, (int, float))
+                              or not math.isfinite(reach) or reach <= 0):
+        raise ValueError(f"reach: expected a finite number > 0 or None, got {reach!r}")
     C = masks.shape[0]
     ok = (torch.ones(C, dtype=torch.bool, device=masks.device) if valid is None
           else valid.to(masks.device).bool())
     n = int(ok.sum())
-    if isinstance(tolerance, bool) or not isinstance(tolerance, int) or tolerance < 0:
-        raise ValueError(f"tolerance: expected an int >= 0, got {tolerance!r}")
     if n < tolerance + 2:
         return masks, {"applied": False, "reason": f"{n} valid view(s); the hull needs "
                                                    f"{tolerance + 2}"}
-    pts = ends.detach().reshape(-1, 3).double().cpu()
-    pad = margin + radius
+    seg = ends.detach().reshape(-1, 2, 3).double().cpu()  # (B, 2, 3)
+    r = radii.detach().reshape(-1).double().cpu()
+    pts = seg.reshape(-1, 3)
+    pad = margin + float(r.max())
     bounds = torch.stack([pts.min(0).values - pad, pts.max(0).values + pad], 1)
     fg = masks > 0
     hull = visual_hull(rig, fg, bounds, voxel, min_views=n - tolerance)
+    info: dict[str, Any] = {"applied": True, "views": n, "tolerance": tolerance}
+    if reach is not None:
+        occ = hull.occupancy
+        idx = occ.nonzero()
+        c = hull.centers().double().cpu()  # (M, 3), the order of idx
+        near = torch.zeros(c.shape[0], dtype=torch.bool)
+        a, ab = seg[:, 0], seg[:, 1] - seg[:, 0]  # (B, 3)
+        den = (ab * ab).sum(-1).clamp_min(1e-12)
+        for s in range(0, c.shape[0], 1 << 15):
+            p = c[s:s + (1 << 15), None, :]  # (m, 1, 3)
+            t = (((p - a) * ab).sum(-1) / den).clamp(0, 1)  # (m, B)
+            d = (p - (a + t[..., None] * ab)).norm(dim=-1) - r  # distance to each surface
+            near[s:s + p.shape[0]] = (d <= reach).any(-1)
+        keep = torch.zeros_like(occ)
+        keep[tuple(idx[near.to(idx.device)].T)] = True
+        info["voxels_off_the_body"] = round(1.0 - float(near.float().mean()) if len(near)
+                                            else 0.0, 4)
+        hull = type(hull)(keep, hull.origin, hull.voxel_size)
+        info["reach"] = float(reach)
     out = fg & hull.silhouettes(rig).to(fg.device)
-    kept = float(out[ok].sum()) / max(float(fg[ok].sum()), 1.0)
-    return out.to(masks.dtype), {"applied": True, "views": n, "tolerance": tolerance,
-                                 "foreground_kept": round(kept, 4)}
+    info["foreground_kept"] = round(float(out[ok].sum()) / max(float(fg[ok].sum()), 1.0), 4)
+    return out.to(masks.dtype), info
+
 
 def _segment(name: str) -> str:
     for side in ("l_", "r_"):
@@ -419,8 +448,8 @@ class SilhouetteBodyFit(BodyFit):
 
     def _hull_filtered(self, masks: torch.Tensor, valid: torch.Tensor | None,
                        ends: torch.Tensor, radii: torch.Tensor) -> tuple[torch.Tensor, dict]:
-        return hull_filtered_masks(self.rig, masks, valid, ends, float(radii.max()),
-                                   self.hull_margin, self.hull_voxel)
+        return hull_filtered_masks(self.rig, masks, valid, ends, radii, self.hull_margin,
+                                   self.hull_voxel)
 
     def extra_repr(self) -> str:
         out = (f"iterations={self.iterations}, scale=[{self.min_scale}, {self.max_scale}], "

@@ -123,8 +123,9 @@ class AnnyBodyFit(BodyFit):
         hull_filter: fit the silhouettes to the foreground the views agree on
             (:func:`~torchmocap.filters.tracking.body_fit.hull_filtered_masks`: the masks
             intersected with the reprojection of their visual hull, carved around the body at
-            the first pose); ``hull_voxel``, ``hull_margin`` (metres) and ``hull_tolerance``
-            (views a hull voxel may miss) as there. The reported IoUs stay those with the
+            the first pose); ``hull_voxel``, ``hull_margin`` (metres), ``hull_tolerance``
+            (views a hull voxel may miss) and ``hull_reach`` (metres: voxels farther from the
+            capsules of the joint fit's body are dropped; None: none) as there. The reported IoUs stay those with the
             masks as given; ``hull`` says what was done.
         refit_passes, refit_scale: the coarse-to-fine passes of :meth:`BodyFit.start`.
     """
@@ -133,7 +134,7 @@ class AnnyBodyFit(BodyFit):
                  silhouette_iterations: int = 30, lr: float = 0.1, prior: float = 0.01,
                  stride: int = 2, tau: float = 0.3, hull_filter: bool = False,
                  hull_voxel: float = 0.02, hull_margin: float = 0.3, hull_tolerance: int = 0,
-                 refit_passes: int = 0, refit_scale: float = 0.25) -> None:
+                 hull_reach: float | None = None, refit_passes: int = 0, refit_scale: float = 0.25) -> None:
         super().__init__(body, refit_passes, refit_scale)
         for name, v in (("joint_iterations", joint_iterations),
                         ("silhouette_iterations", silhouette_iterations)):
@@ -157,7 +158,12 @@ class AnnyBodyFit(BodyFit):
         if isinstance(hull_tolerance, bool) or not isinstance(hull_tolerance, int) or \
                 hull_tolerance < 0:
             raise ValueError(f"hull_tolerance: expected an int >= 0, got {hull_tolerance!r}")
+        if hull_reach is not None and (isinstance(hull_reach, bool) or not isinstance(
+                hull_reach, (int, float)) or not math.isfinite(hull_reach) or hull_reach <= 0):
+            raise ValueError(f"hull_reach: expected a finite number > 0 or None, got "
+                             f"{hull_reach!r}")
         self.hull_filter, self.hull_tolerance = hull_filter, hull_tolerance
+        self.hull_reach = None if hull_reach is None else float(hull_reach)
         self.hull_voxel, self.hull_margin = float(hull_voxel), float(hull_margin)
         missing = sorted({"pelvis", "spine", "neck", "l_hip", "l_knee", "l_ankle", "l_shoulder",
                           "l_elbow"} - set(body.skeleton.joint_names))
@@ -255,8 +261,8 @@ class AnnyBodyFit(BodyFit):
             masks = frame.silhouettes
             if self.hull_filter:
                 masks, hull_info = hull_filtered_masks(
-                    rig, masks, valid, ends, float(fit0.radii.max()), self.hull_margin,
-                    self.hull_voxel, self.hull_tolerance)
+                    rig, masks, valid, ends, fit0.radii, self.hull_margin, self.hull_voxel,
+                    self.hull_tolerance, self.hull_reach)
             target = masks[:, ::st, ::st].to(dev, dt)
             vw = torch.ones(target.shape[0], dtype=dt, device=dev) if valid is None else \
                 valid.to(dt)
