@@ -75,12 +75,14 @@ def test_the_hull_filter_removes_what_one_view_alone_sees(anny_data):
         info = f(th, _Frame(m))
         return f.fitted_mesh()[1], info
 
-    ref, _ = fit(clean)
-    plain, info_plain = fit(masks)
-    filtered, info = fit(masks, hull_filter=True)
+    ref, _ = fit(clean, hull_filter=False)
+    plain, info_plain = fit(masks, hull_filter=False)
+    filtered, info = fit(masks, hull_filter=True, hull_reach=None)
+    near, info_near = fit(masks)  # the default: hull-filtered, within 10 cm of the body
     weight = 3  # PHENOTYPE_NAMES order: gender, age, muscle, weight, height, proportions
     assert float(plain[weight] - ref[weight]) > 0.1
     assert torch.allclose(filtered, ref, atol=0.01)
+    assert torch.allclose(near, ref, atol=0.02) and info_near["hull"]["reach"] == 0.1
     assert info["hull"]["applied"] and info["hull"]["foreground_kept"] < 0.7
     assert "hull" not in info_plain
     # the reported IoUs are those with the masks as given
