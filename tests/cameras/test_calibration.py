@@ -243,3 +243,34 @@ def test_visual_hull_synthetic_sphere():
     assert sphere < hull.volume < 1.6 * sphere
     c = hull.centers()
     assert (c.mean(0) - centre).norm() < 0.02
+
+
+def test_visual_hull_of_views_of_different_sizes():
+    """Views of different sizes share one array (a sequence's layout: a smaller view in the
+    top-left corner). A view cropped at the right and bottom carves what lies beyond its own
+    image — as an uncropped view whose mask is empty there — and never reads the padding; its
+    rendered hull is False beyond its size."""
+    base = make_ring_rig(3, image_size=(64, 48)).double()
+    g = torch.Generator().manual_seed(0)
+    # a ball of points 0.4 m wide around the rigs' target, rendered as masks
+    pts = (torch.rand(4000, 3, generator=g, dtype=torch.float64) - 0.5) * 0.4 + \
+        torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    pix, _, _ = base.project(pts)
+    masks = torch.zeros(3, 48, 64, dtype=torch.bool)
+    for c in range(3):
+        u, v = pix[c, :, 0].round().long().clamp(0, 63), pix[c, :, 1].round().long().clamp(0, 47)
+        masks[c, v, u] = True
+    bounds = [[-0.5, 0.5], [-0.5, 0.5], [0.5, 1.5]]
+    cropped = CameraRig(base.K, base.R, base.t, [[64, 48], [34, 48], [64, 48]], base.dist)
+    inside = masks.clone()
+    inside[1, :, 34:] = False  # the cropped-away part, as an empty mask
+    padded = masks.clone()
+    padded[1, :, 34:] = True  # padding that must not be read
+    want = visual_hull(base, inside, bounds, 0.02)
+    got = visual_hull(cropped, padded, bounds, 0.02)
+    assert want.volume > 0 and torch.equal(got.occupancy, want.occupancy)
+    assert got.volume < visual_hull(base, masks, bounds, 0.02).volume  # the crop carved
+    sil = got.silhouettes(cropped)
+    assert sil.shape == (3, 48, 64) and not bool(sil[1, :, 34:].any())
+    with pytest.raises(CameraError, match=r"expected \(C, 48, 64\)"):
+        visual_hull(cropped, masks[:, :, :34], bounds, 0.02)

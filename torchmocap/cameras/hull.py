@@ -55,7 +55,9 @@ class VisualHull:
         ``ceil(f · voxel_size / (2 · depth))`` pixels, the image of the voxel's cube; comparing
         with the input masks (IoU) measures how consistent calibration and silhouettes are.
         """
-        W, H = (int(v) for v in rig.image_size[0])
+        sizes = rig.image_size.long()
+        W, H = int(sizes[:, 0].max()), int(sizes[:, 1].max())
+        Wc, Hc = sizes[:, 0, None], sizes[:, 1, None]  # (C, 1) each view's own size
         C = rig.num_cameras
         out = torch.zeros(C, H * W, dtype=torch.bool, device=self.occupancy.device)
         c = self.centers()
@@ -71,8 +73,8 @@ class VisualHull:
         for dv in range(-kmax, kmax + 1):
             for du in range(-kmax, kmax + 1):
                 u, v = u0 + du, v0 + dv
-                ok = vis & (half >= max(abs(du), abs(dv))) & (u >= 0) & (u < W) & (v >= 0) & \
-                    (v < H)
+                ok = vis & (half >= max(abs(du), abs(dv))) & (u >= 0) & (u < Wc) & (v >= 0) & \
+                    (v < Hc)
                 out[cam[ok], (v * W + u)[ok]] = True
         return out.reshape(C, H, W)
 
@@ -105,10 +107,12 @@ def _masks_tensor(masks: Tensor | Sequence[Tensor] | np.ndarray, rig: CameraRig)
     C = rig.num_cameras
     if m.dim() != 3 or m.shape[0] != C:
         raise CameraError(f"masks must have shape ({C}, H, W), got {tuple(m.shape)}")
-    W, H = (int(v) for v in rig.image_size[0])
-    if bool((rig.image_size != rig.image_size[0]).any()) or m.shape[1:] != (H, W):
+    sizes = rig.image_size.long()
+    W, H = int(sizes[:, 0].max()), int(sizes[:, 1].max())
+    if m.shape[1:] != (H, W):
         raise CameraError(f"masks of shape {tuple(m.shape)} do not match the rig's image sizes "
-                          f"{rig.image_size.tolist()} (width, height)")
+                          f"{rig.image_size.tolist()} (width, height): expected (C, {H}, {W}), "
+                          "the largest view's size (a smaller view in the top-left corner)")
     m = m.to(rig.K.device)
     return m > 0 if m.dtype != torch.bool else m
 
@@ -121,7 +125,9 @@ def visual_hull(rig: CameraRig, masks: Tensor | Sequence[Tensor] | np.ndarray,
     Args:
         rig: C calibrated cameras (with distortion, which is applied: masks are raw images).
         masks: ``(C, H, W)`` foreground masks (bool, or any dtype where > 0 is foreground, e.g.
-            0/255 BMPs); all views the same size as the rig's ``image_size``.
+            0/255 BMPs) of the largest view's size; a smaller view fills the top-left corner
+            (the layout of a sequence's silhouettes), its pixels beyond its own
+            ``image_size`` are not looked at.
         bounds: ``(3, 2)`` world box ``[[xmin, xmax], [ymin, ymax], [zmin, zmax]]`` in metres.
         resolution: voxel edge in metres.
         min_views: voxels must fall inside this many masks (default: all C). A voxel that
@@ -155,6 +161,7 @@ def visual_hull(rig: CameraRig, masks: Tensor | Sequence[Tensor] | np.ndarray,
     axes = [a.to(dev) for a in axes]
     grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     H, W = m.shape[1:]
+    Wc, Hc = rig.image_size.long()[:, 0, None], rig.image_size.long()[:, 1, None]  # (C, 1)
     flat = m.reshape(C, -1)
     count = torch.empty(grid.shape[0], dtype=torch.int16, device=dev)
     cam_idx = torch.arange(C, device=dev)[:, None]
@@ -162,9 +169,10 @@ def visual_hull(rig: CameraRig, masks: Tensor | Sequence[Tensor] | np.ndarray,
         for s in range(0, grid.shape[0], chunk):
             pts = grid[s:s + chunk]
             pix, _, vis = rig.project(pts)  # (C, M, 2), (C, M)
-            ui = pix[..., 0].round().long().clamp(0, W - 1)
-            vi = pix[..., 1].round().long().clamp(0, H - 1)
-            inside = flat[cam_idx, vi * W + ui] & vis
+            u, v = pix[..., 0].round().long(), pix[..., 1].round().long()
+            in_image = (u >= 0) & (u < Wc) & (v >= 0) & (v < Hc)
+            ui, vi = u.clamp(0, W - 1), v.clamp(0, H - 1)
+            inside = flat[cam_idx, vi * W + ui] & vis & in_image
             count[s:s + chunk] = inside.sum(0).to(torch.int16)
     occ = (count >= need).reshape(*n.tolist())
     return VisualHull(occ, origin.to(dev), float(resolution))
