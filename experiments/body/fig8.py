@@ -188,10 +188,13 @@ def plot(rows: dict, path: Path) -> None:
                     ms.append(_mean(v))
                     es.append(0.0 if len(v) < 2 else _se(v))
             ax.bar(xs, ms, w, yerr=es, capsize=2, label=name, alpha=0.85)
+            top = max([top] + [m + e for m, e in zip(ms, es)]) if i else \
+                max(m + e for m, e in zip(ms, es))
+        ax.set_ylim(0, 1.45 * top)  # room for the legend
         ax.set_xticks(range(len(CLIPS)), CLIPS, rotation=30, ha="right")
         ax.set_ylabel(label + ", mean ± s.e.")
         ax.grid(alpha=0.3, axis="y")
-    axes[0].legend(fontsize=8)
+    axes[0].legend(fontsize=7, loc="upper left")
     fig.suptitle("Fig. 8 outdoor, LS: capsules vs fitted Anny body (synthesis seeds "
                  f"{', '.join(map(str, seeds))})", fontsize=10)
     fig.tight_layout()
