@@ -179,6 +179,7 @@ def plot(rows: dict, path: Path) -> None:
     w = 0.8 / len(trs)
     for ax, key, label in ((axes[0], "orientation", "orientation error (deg)"),
                            (axes[1], "mpjpe", "MPJPE (mm)")):
+        top = 0.0
         for i, (tr, name) in enumerate(trs):
             xs, ms, es = [], [], []
             for c, clip in enumerate(CLIPS):
@@ -188,8 +189,7 @@ def plot(rows: dict, path: Path) -> None:
                     ms.append(_mean(v))
                     es.append(0.0 if len(v) < 2 else _se(v))
             ax.bar(xs, ms, w, yerr=es, capsize=2, label=name, alpha=0.85)
-            top = max([top] + [m + e for m, e in zip(ms, es)]) if i else \
-                max(m + e for m, e in zip(ms, es))
+            top = max([top] + [m + e for m, e in zip(ms, es)])
         ax.set_ylim(0, 1.45 * top)  # room for the legend
         ax.set_xticks(range(len(CLIPS)), CLIPS, rotation=30, ha="right")
         ax.set_ylabel(label + ", mean ± s.e.")

@@ -9,8 +9,9 @@ observations) is fitted at the true first pose, and the fitted capsules, posed b
 motion, are rendered on every ``--every``-th frame and compared with the *clean* silhouettes of
 the same sequence (the same synthesis without corruptions): the mean IoU over frames and views.
 Fits: the anthropometric capsules (today's tracker), the Anny fit from the joints only, from the
-joints and the masks as given (``body_fit/anny``), the same to the hull-filtered masks
-(tolerance 0 and 1; only near the body, reach 10 cm), and — a bound, not a method — the same fit to the clean first frame.
+joints and the masks as given, the same to the hull-filtered masks (tolerance 0 and 1; only
+near the body, reach 10 cm: ``body_fit/anny``'s default), and — a bound, not a method — the
+same fit to the clean first frame.
 The MakeHuman mesh the sequences are rendered with is not an Anny body, so even the bound is
 not 1.
 
@@ -42,11 +43,12 @@ CLEAN = {"silhouettes.boundary_flip": 0.0, "silhouettes.holes": 0.0,
          "images.enabled": False, "depth.enabled": False, "joints2d.enabled": False}
 FITS = (("capsules", None, False),
         ("Anny, joints only", dict(silhouette_iterations=0), False),
-        ("Anny, masks as given", dict(), False),
-        ("Anny, hull-filtered masks", dict(hull_filter=True), False),
-        ("Anny, hull-filtered, tolerance 1", dict(hull_filter=True, hull_tolerance=1), False),
+        ("Anny, masks as given", dict(hull_filter=False), False),
+        ("Anny, hull-filtered masks", dict(hull_filter=True, hull_reach=None), False),
+        ("Anny, hull-filtered, tolerance 1", dict(hull_filter=True, hull_reach=None,
+                                                  hull_tolerance=1), False),
         ("Anny, hull-filtered, reach 10 cm", dict(hull_filter=True, hull_reach=0.1), False),
-        ("Anny, clean first frame (bound)", dict(), True))
+        ("Anny, clean first frame (bound)", dict(hull_filter=False), True))
 
 
 class _Frame:

@@ -308,9 +308,9 @@ def test_implausible_masks_give_a_warning(case):
 
 def test_hull_tolerance_keeps_one_views_hole_its_own():
     """A hole across the left forearm of view 0 carves the all-views hull, so the filtered masks
-    lose that piece of the forearm in the other views too; with ``tolerance=1`` the other views keep their foreground, view 0
-    keeps its hole (the filter never adds foreground), and a blob only view 1 sees, far from
-    the body, is still removed."""
+    lose that piece of the forearm in the other views too; with ``tolerance=1`` the other views
+    keep their foreground, view 0 keeps its hole (the filter never adds foreground), and a blob
+    only view 1 sees, far from the body, is still removed."""
     sk, rig, th, truth, clean, wrist = _arm_out_scene()
     elbow = rig.project(sk(th[None].float()).positions[0, [sk.joint_index("l_elbow")]])[0][:, 0]
     masks = clean.clone()
