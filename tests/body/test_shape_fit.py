@@ -85,6 +85,10 @@ def test_the_hull_filter_removes_what_one_view_alone_sees(anny_data):
     assert torch.allclose(near, ref, atol=0.02) and info_near["hull"]["reach"] == 0.1
     assert info["hull"]["applied"] and info["hull"]["foreground_kept"] < 0.7
     assert "hull" not in info_plain
+    # kept is decided on the masks it fitted, whose IoU with the body is the higher
+    h = info["hull"]
+    assert info["kept"] == (h["iou_after"] >= h["iou_before"])
+    assert h["iou_after"] > info["iou_after"]
     # the reported IoUs are those with the masks as given
     assert info["iou_before"] == pytest.approx(info_plain["iou_before"])
 

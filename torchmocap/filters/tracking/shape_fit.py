@@ -272,6 +272,8 @@ class AnnyBodyFit(BodyFit):
                 masks, hull_info = hull_filtered_masks(
                     rig, masks, valid, ends, fit0.radii, self.hull_margin, self.hull_voxel,
                     self.hull_tolerance, self.hull_reach)
+                if hull_info["applied"]:  # the runtime capsules are still the unfitted ones
+                    hull_info["iou_before"] = self._iou(theta, masks, valid)
             target = masks[:, ::st, ::st].to(dev, dt)
             vw = torch.ones(target.shape[0], dtype=dt, device=dev) if valid is None else \
                 valid.to(dt)
@@ -312,18 +314,11 @@ class AnnyBodyFit(BodyFit):
             getattr(caps, k).copy_(getattr(fit.body, k).to(getattr(caps, k)))
         iou1 = self._iou(theta, frame.silhouettes, valid)
         kept = iou1 >= iou0
-        if hull_info is not None and hull_info.get("applied"):
+        if hull_info is not None and hull_info["applied"]:
             # judged on the masks it fitted (as SilhouetteBodyFit): a body fitted to the
             # foreground the views agree on may cover less of the corruptions
-            with torch.no_grad():
-                for k in self.STATE:
-                    getattr(caps, k).copy_(state0[k])
-                f0 = self._iou(theta, masks, valid)
-                for k in self.STATE:
-                    getattr(caps, k).copy_(getattr(fit.body, k).to(getattr(caps, k)))
-            f1 = self._iou(theta, masks, valid)
-            hull_info.update(iou_before=f0, iou_after=f1)
-            kept = f1 >= f0
+            hull_info["iou_after"] = self._iou(theta, masks, valid)
+            kept = hull_info["iou_after"] >= hull_info["iou_before"]
         if not kept:
             for k, v in state0.items():
                 getattr(caps, k).copy_(v)
